@@ -1,0 +1,468 @@
+"""The spike-camera sensor model (shared/specs/sensor-model.md), pure NumPy, no I/O.
+
+A view is ``K`` sub-frames of linear luminance ``X [K, H, W]`` turned into ``T`` readout
+frames of spikes ``uint8 [T, H, W]``. The rate of a pixel in frame ``t`` is::
+
+    lambda(x, y, t) = R(x, y) * ((I / 256) * X(x, y, t) + d(x, y))      # spikes per frame
+
+with ``X(t)`` piecewise-linear between sub-frame centres ``(k + 0.5) T / K``. Each frame the
+pixel integrates ``q = lambda`` (or, with photon shot noise, ``Poisson(N_e lambda) / N_e``),
+fires when its accumulator reaches one threshold, subtracts it, and fires at most once a
+frame (after a spike ``A = min(A, 1)``).
+
+Exactness. Charge is fixed-point: one threshold is ``ONE = 2**32`` units and every per-frame
+charge is an integer number of units, defined by :class:`ChargeSchedule`. Integrating
+integers is exact, so the fast path below (a wrapping ``uint32`` prefix sum whose carries are
+the spikes) and a plain frame-by-frame loop give the same bits. The quantisation is 2**-32
+of a threshold: far below any physical effect.
+
+Randomness comes from a ``numpy.random.SeedSequence`` (see :mod:`spikegen.seeding`): child 0
+draws the start phases, child ``1 + b`` the temporal noise of row block ``b`` (blocks of
+``CHUNK_ROWS`` rows), so a stream never depends on how the work is split.
+"""
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from .errors import InputError
+from .seeding import as_seed_sequence
+
+ONE = 1 << 32  # one threshold, in fixed-point charge units
+CHUNK_ROWS = 8  # rows processed (and noise-seeded) together
+MU_EXACT_POISSON = 30.0  # below this mean photo-electron count per frame, Poisson is drawn exactly
+RESETS = ("subtract", "zero")
+KINDS = ("if", "rsir")
+
+
+@dataclass(frozen=True, eq=False)
+class Sensor:
+    """A sensor: per-pixel maps plus temporal and radiance effects.
+
+    Every effect is off at its neutral value. Maps are ``[H, W]`` float arrays or ``None``
+    (``R = 1``, ``d = 0``). ``map_model`` (optional) describes the maps statistically so that
+    :meth:`sized` can draw maps of any size for the same camera (seeded by ``camera_seed``).
+    """
+
+    name: str = "ideal"
+    responsivity: np.ndarray | None = None  # R [H, W], median 1
+    dark_rate: np.ndarray | None = None  # d [H, W], spikes per frame at nominal response
+    electrons: float = 0.0  # photo-electrons per threshold N_e; 0 = no shot noise
+    reset: str = "subtract"  # "subtract" (residual kept) or "zero" (reset_to_zero effect)
+    refractory_frames: int = 0
+    flicker_period_frames: float = 0.0
+    flicker_depth: float = 0.0
+    crosstalk_fraction: float = 0.0
+    gamma: float = 1.0  # nonlinearity: X -> X ** gamma
+    kind: str = "if"  # "if" (this model) or "rsir" (the paper's reference generator)
+    lux_to_rate: float | None = None  # spikes per frame per lux at nominal response
+    camera_seed: int = 0
+    map_model: dict | None = None
+    notes: dict = field(default_factory=dict)
+
+    def __post_init__(self):
+        if self.reset not in RESETS:
+            raise InputError(f"sensor {self.name!r}: reset must be one of {RESETS}, got {self.reset!r}")
+        if self.kind not in KINDS:
+            raise InputError(f"sensor {self.name!r}: kind must be one of {KINDS}, got {self.kind!r}")
+        for label, value in (("electrons", self.electrons), ("refractory_frames", self.refractory_frames),
+                             ("flicker_depth", self.flicker_depth), ("crosstalk_fraction", self.crosstalk_fraction),
+                             ("flicker_period_frames", self.flicker_period_frames)):
+            if not (math.isfinite(value) and value >= 0):
+                raise InputError(f"sensor {self.name!r}: {label} must be finite and >= 0, got {value}")
+        if not (math.isfinite(self.gamma) and self.gamma > 0):
+            raise InputError(f"sensor {self.name!r}: gamma must be > 0, got {self.gamma}")
+        if self.flicker_depth > 0 and self.flicker_period_frames <= 0:
+            raise InputError(f"sensor {self.name!r}: flicker needs flicker_period_frames > 0")
+        for label, arr in (("responsivity", self.responsivity), ("dark_rate", self.dark_rate)):
+            if arr is not None:
+                a = np.asarray(arr)
+                if a.ndim != 2 or not np.all(np.isfinite(a)) or a.min() < 0:
+                    raise InputError(f"sensor {self.name!r}: {label} map must be a finite, non-negative [H, W] array")
+
+    # ------------------------------------------------------------------ maps
+    @property
+    def shape(self) -> tuple[int, int] | None:
+        for arr in (self.responsivity, self.dark_rate):
+            if arr is not None:
+                return tuple(np.shape(arr))
+        return None
+
+    def replace(self, **changes) -> "Sensor":
+        return dataclasses.replace(self, **changes)
+
+    def sized(self, height: int, width: int) -> "Sensor":
+        """This camera's sensor at ``height x width``: its own maps if they fit, else maps drawn
+        from ``map_model`` (seeded by ``camera_seed``); an error if neither."""
+        if self.shape in (None, (height, width)):
+            return self
+        if self.map_model is None:
+            raise InputError(
+                f"sensor {self.name!r}: its maps are {self.shape[1]}x{self.shape[0]}, the stream is "
+                f"{width}x{height}, and it has no statistical map model to draw maps of another size"
+            )
+        from .fpn import draw_maps
+
+        resp, dark = draw_maps(self.map_model, height, width, self.camera_seed, self.lux_to_rate)
+        return self.replace(responsivity=resp, dark_rate=dark)
+
+    def maps(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+        """(R, d) as float64 ``[H, W]`` arrays for a stream of this size."""
+        s = self.sized(height, width)
+        resp = np.ones((height, width)) if s.responsivity is None else np.asarray(s.responsivity, dtype=np.float64)
+        dark = np.zeros((height, width)) if s.dark_rate is None else np.asarray(s.dark_rate, dtype=np.float64)
+        return resp, dark
+
+    @property
+    def radiance_effects(self) -> bool:
+        return self.gamma != 1.0 or self.crosstalk_fraction > 0 or self.flicker_depth > 0
+
+    @property
+    def simple_readout(self) -> bool:
+        return self.reset == "subtract" and self.refractory_frames == 0
+
+    def parameters(self) -> dict:
+        """Scalar parameters (no maps), as written to ``sensor.json``."""
+        return {
+            "name": self.name, "kind": self.kind, "electrons": self.electrons, "reset": self.reset,
+            "refractory_frames": self.refractory_frames, "flicker_period_frames": self.flicker_period_frames,
+            "flicker_depth": self.flicker_depth, "crosstalk_fraction": self.crosstalk_fraction,
+            "gamma": self.gamma, "lux_to_rate": self.lux_to_rate, "camera_seed": self.camera_seed,
+        }
+
+
+# ---------------------------------------------------------------------- time: sub-frames -> frames
+def frame_segments(subframes: int, frames: int):
+    """Split frames ``0..T-1`` into runs where the radiance is constant or linear.
+
+    Returns a list of ``(a, b, k, linear)``: frames ``a <= t < b`` lie between centres
+    ``c_k`` and ``c_{k+1}`` (``linear``) or are held at sub-frame ``k`` (before the first
+    centre, after the last one). Centres are ``c_k = (k + 0.5) T / K``.
+    """
+    K, T = subframes, frames
+    centres = [(k + 0.5) * T / K for k in range(K)]
+    bounds = [min(T, max(0, math.ceil(c))) for c in centres]
+    segs = []
+    if bounds[0] > 0:
+        segs.append((0, bounds[0], 0, False))
+    for k in range(K - 1):
+        if bounds[k + 1] > bounds[k]:
+            segs.append((bounds[k], bounds[k + 1], k, True))
+    if bounds[-1] < T:
+        segs.append((bounds[-1], T, K - 1, False))
+    return segs
+
+
+def interpolation_weights(subframes: int, frames: int) -> np.ndarray:
+    """``W [T, K]`` with ``X(t) = W @ X_k``: piecewise-linear between sub-frame centres."""
+    K, T = subframes, frames
+    w = np.zeros((T, K))
+    step = T / K
+    for a, b, k, linear in frame_segments(K, T):
+        if not linear:
+            w[a:b, k] = 1.0
+            continue
+        f = (np.arange(a, b) - (k + 0.5) * step) / step
+        w[a:b, k] = 1.0 - f
+        w[a:b, k + 1] = f
+    return w
+
+
+class ChargeSchedule:
+    """Fixed-point charge per frame of P pixels whose rate is piecewise-linear in time.
+
+    ``lam [K, P]`` are the rates (spikes per frame) at the sub-frame centres. In each run of
+    frames ``a <= t < b`` the charge is ``q_t = U + V (t - a)`` (integers, units of ``ONE``):
+    ``U`` is the exact interpolated charge at frame ``a`` rounded towards the run's start
+    value, ``V`` the slope rounded towards zero, so ``q_t`` never leaves the range of its two
+    end values and never differs from exact interpolation by more than ``b - a`` units.
+    Rates are clipped to ``[0, 2]``: above one spike a frame the pixel saturates either way.
+    """
+
+    def __init__(self, lam: np.ndarray, frames: int):
+        lam = np.asarray(lam, dtype=np.float64)
+        K, P = lam.shape
+        self.frames, self.pixels = frames, P
+        self.levels = np.rint(np.clip(lam, 0.0, 2.0) * ONE)  # [K, P], exact integers in float64
+        self.saturating = (self.levels >= ONE).any(axis=0)  # [P]
+        step = frames / K
+        segs = frame_segments(K, frames)
+        self.starts = np.array([s[0] for s in segs], dtype=np.int64)
+        self.stops = np.array([s[1] for s in segs], dtype=np.int64)
+        U = np.empty((len(segs), P), dtype=np.int64)
+        V = np.zeros((len(segs), P), dtype=np.int64)
+        for i, (a, b, k, linear) in enumerate(segs):
+            if not linear:
+                U[i] = self.levels[k]
+                continue
+            delta = self.levels[k + 1] - self.levels[k]
+            slope = delta / step
+            exact_a = self.levels[k] + delta * ((a - (k + 0.5) * step) / step)
+            U[i] = np.where(slope >= 0, np.floor(exact_a), np.ceil(exact_a))
+            V[i] = np.trunc(slope)
+        self.U, self.V = U, V
+
+    def frame(self, t: int) -> np.ndarray:
+        """Charge of frame ``t`` for every pixel, ``int64 [P]``."""
+        i = int(np.searchsorted(self.stops, t, side="right"))
+        return self.U[i] + self.V[i] * (t - self.starts[i])
+
+    def dense_int64(self, cols=None) -> np.ndarray:
+        """All frames, ``int64 [T, P]`` (or only columns ``cols``)."""
+        U, V = (self.U, self.V) if cols is None else (self.U[:, cols], self.V[:, cols])
+        out = np.empty((self.frames, U.shape[1]), dtype=np.int64)
+        for i, (a, b) in enumerate(zip(self.starts, self.stops)):
+            j = np.arange(b - a, dtype=np.int64)[:, None]
+            np.multiply(j, V[i], out=out[a:b])
+            out[a:b] += U[i]
+        return out
+
+    def dense_uint32(self) -> np.ndarray:
+        """All frames as ``uint32 [T, P]``; valid for pixels that do not saturate.
+
+        Wrapping uint32 arithmetic gives the exact value because the true charge lies in
+        ``[0, 2**32)`` for such pixels, whatever the sign of the slope.
+        """
+        U = (self.U & 0xFFFFFFFF).astype(np.uint32)
+        V = (self.V & 0xFFFFFFFF).astype(np.uint32)
+        out = np.empty((self.frames, self.pixels), dtype=np.uint32)
+        for i, (a, b) in enumerate(zip(self.starts, self.stops)):
+            if not self.V[i].any():
+                out[a:b] = U[i]
+                continue
+            j = np.arange(b - a, dtype=np.uint32)[:, None]
+            np.multiply(j, V[i], out=out[a:b])
+            out[a:b] += U[i]
+        return out
+
+
+# ---------------------------------------------------------------------- readout
+def carry_readout(q: np.ndarray, phase: np.ndarray) -> np.ndarray:
+    """Integrate-and-fire with subtractive reset, no saturation: spikes are carries.
+
+    ``q uint32 [T, P]`` (each < one threshold), ``phase uint32 [P]`` the start charge.
+    The accumulator's fraction is the wrapping prefix sum ``C_t = phase + sum q``; frame
+    ``t`` fires exactly when the addition of ``q_t`` wrapped, i.e. when ``C_t < q_t``.
+    Returns ``bool [T, P]``.
+    """
+    acc = q.copy()
+    acc[0] += phase
+    np.cumsum(acc, axis=0, dtype=np.uint32, out=acc)
+    return np.less(acc, q)
+
+
+def loop_readout(q: np.ndarray, phase: np.ndarray, reset: str = "subtract", refractory_frames: int = 0) -> np.ndarray:
+    """Frame-by-frame integrate-and-fire, any reset and refractory period.
+
+    ``q int64 [T, P]`` in units of ``ONE`` (may exceed one threshold), ``phase [P]``.
+    Fires when ``A >= ONE``; subtractive reset keeps the residual and clamps ``A <= ONE``
+    (one spike a frame at most); ``reset="zero"`` discards it. During ``refractory_frames``
+    frames after a spike the pixel neither integrates nor fires. Returns ``bool [T, P]``.
+    """
+    T, P = q.shape
+    acc = phase.astype(np.int64)
+    out = np.zeros((T, P), dtype=bool)
+    wait = np.zeros(P, dtype=np.int64) if refractory_frames else None
+    for t in range(T):
+        if wait is None:
+            acc += q[t]
+            fire = acc >= ONE
+        else:
+            active = wait == 0
+            acc += np.where(active, q[t], 0)
+            fire = active & (acc >= ONE)
+            np.subtract(wait, 1, out=wait, where=~active)
+            wait[fire] = refractory_frames
+        if reset == "zero":
+            acc[fire] = 0
+        else:
+            acc -= fire * ONE
+            np.minimum(acc, ONE, out=acc)
+        out[t] = fire
+    return out
+
+
+# ---------------------------------------------------------------------- the simulator
+def start_phase(seed, height: int, width: int) -> np.ndarray:
+    """Start charge ``A ~ U(0, 1)`` of every pixel, ``uint32 [H, W]`` in units of ``ONE``."""
+    rng = np.random.Generator(np.random.PCG64(_child(as_seed_sequence(seed), 0)))
+    return rng.integers(0, ONE, size=(height, width), dtype=np.uint64).astype(np.uint32)
+
+
+def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: int = 256, seed=0,
+             phase: np.ndarray | None = None, progress=None) -> np.ndarray:
+    """Spike stream of one view.
+
+    radiance: linear luminance, ``[K, H, W]`` sub-frames or ``[H, W]`` (static, K = 1).
+    intensity: I, spikes per 256 frames of a nominal pixel at ``X = 1``.
+    sensor: the sensor (default ``ideal``); its maps are drawn or checked for ``H x W``.
+    frames: T. seed: int or SeedSequence (see :mod:`spikegen.seeding`).
+    phase: optional start charge ``uint32 [H, W]`` (overrides the seeded one).
+    progress: optional callable(rows_done, rows_total).
+    Returns ``uint8 [T, H, W]`` of 0/1.
+    """
+    x = np.asarray(radiance)
+    if x.ndim == 2:
+        x = x[None]
+    if x.ndim != 3 or x.shape[0] < 1 or 0 in x.shape:
+        raise InputError(f"radiance must be [K, H, W] or [H, W], got shape {np.shape(radiance)}")
+    if not np.all(np.isfinite(x)):
+        raise InputError("radiance has NaN or infinite values")
+    if x.min() < 0:
+        raise InputError(f"radiance has negative values (min {float(x.min()):.4g})")
+    if not (math.isfinite(intensity) and intensity > 0):
+        raise InputError(f"intensity must be a positive number, got {intensity}")
+    if int(frames) != frames or frames < 1:
+        raise InputError(f"frames must be a positive integer, got {frames}")
+    K, H, W = x.shape
+    sensor = (sensor or Sensor()).sized(H, W)
+    resp, dark = sensor.maps(H, W)
+    ss = as_seed_sequence(seed)
+    phase = start_phase(ss, H, W) if phase is None else np.asarray(phase, dtype=np.uint32)
+    if phase.shape != (H, W):
+        raise InputError(f"phase must be [{H}, {W}], got {phase.shape}")
+    out = np.empty((frames, H, W), dtype=np.uint8)
+    for block, r0 in enumerate(range(0, H, CHUNK_ROWS)):
+        r1 = min(H, r0 + CHUNK_ROWS)
+        rng = np.random.Generator(np.random.PCG64(_child(ss, 1 + block)))
+        rows = _simulate_rows(x, r0, r1, float(intensity), sensor, resp, dark, phase, frames, rng)
+        out[:, r0:r1, :] = rows.reshape(frames, r1 - r0, W)
+        if progress is not None:
+            progress(r1, H)
+    return out
+
+
+def _child(ss: np.random.SeedSequence, i: int) -> np.random.SeedSequence:
+    # An explicit child (not ss.spawn, which changes ss and so the next call's streams).
+    return np.random.SeedSequence(ss.entropy, spawn_key=tuple(ss.spawn_key) + (i,), pool_size=ss.pool_size)
+
+
+def _simulate_rows(x, r0, r1, intensity, sensor, resp, dark, phase, T, rng) -> np.ndarray:
+    K, H, W = x.shape
+    P = (r1 - r0) * W
+    R = resp[r0:r1].reshape(P)
+    d = dark[r0:r1].reshape(P)
+    a0 = phase[r0:r1].reshape(P)
+    gain = intensity / 256.0
+
+    if sensor.kind == "if" and not sensor.radiance_effects:
+        sched = ChargeSchedule(R * (gain * x[:, r0:r1].reshape(K, P).astype(np.float64) + d), T)
+        if sensor.electrons == 0 and sensor.simple_readout:
+            return _readout_schedule(sched, a0)
+        charge = sched.dense_int64()
+    else:
+        xt = _frame_radiance(x, r0, r1, T, sensor)  # [T, P] after radiance effects
+        if sensor.kind == "rsir":
+            charge = _quantise(rsir_charge(xt, intensity, R, d, rng))
+        else:
+            charge = _quantise(R * (gain * xt + d))
+    if sensor.electrons > 0:
+        charge = shot_noise(charge, sensor.electrons, rng)
+    return _readout_dense(charge, a0, sensor)
+
+
+def _readout_schedule(sched: ChargeSchedule, a0) -> np.ndarray:
+    sat = sched.saturating
+    if not sat.any():
+        return carry_readout(sched.dense_uint32(), a0)
+    out = np.empty((sched.frames, sched.pixels), dtype=bool)
+    ok = ~sat
+    if ok.any():
+        out[:, ok] = carry_readout(sched.dense_uint32()[:, ok], a0[ok])
+    out[:, sat] = loop_readout(sched.dense_int64(np.flatnonzero(sat)), a0[sat])
+    return out
+
+
+def _readout_dense(charge: np.ndarray, a0, sensor: Sensor) -> np.ndarray:
+    if not sensor.simple_readout:
+        return loop_readout(charge, a0, sensor.reset, int(sensor.refractory_frames))
+    sat = (charge >= ONE).any(axis=0)
+    if not sat.any():
+        return carry_readout(charge.astype(np.uint32), a0)
+    out = np.empty(charge.shape, dtype=bool)
+    ok = ~sat
+    if ok.any():
+        out[:, ok] = carry_readout(charge[:, ok].astype(np.uint32), a0[ok])
+    out[:, sat] = loop_readout(charge[:, sat], a0[sat])
+    return out
+
+
+def _quantise(q: np.ndarray) -> np.ndarray:
+    """Charge in thresholds (float) -> int64 units of ``ONE`` (clipped to [0, 2])."""
+    return np.rint(np.clip(q, 0.0, 2.0) * ONE).astype(np.int64)
+
+
+def _frame_radiance(x, r0, r1, T, sensor: Sensor) -> np.ndarray:
+    """``X(t)`` of rows r0..r1 for every frame, ``[T, P]`` float64, radiance effects applied
+    in the order of sensor-model.md: nonlinearity, crosstalk, flicker."""
+    K, H, W = x.shape
+    halo = 1 if sensor.crosstalk_fraction > 0 else 0
+    h0, h1 = max(0, r0 - halo), min(H, r1 + halo)
+    wts = interpolation_weights(K, T)
+    xt = (wts @ x[:, h0:h1].reshape(K, -1).astype(np.float64)).reshape(T, h1 - h0, W)
+    if sensor.gamma != 1.0:
+        np.power(xt, sensor.gamma, out=xt)
+    if sensor.crosstalk_fraction > 0:
+        xt = crosstalk(xt, sensor.crosstalk_fraction, top_edge=(h0 == 0), bottom_edge=(h1 == H))
+        xt = xt[:, r0 - h0: r0 - h0 + (r1 - r0)]
+    if sensor.flicker_depth > 0:
+        t = np.arange(T, dtype=np.float64)
+        xt = xt * (1.0 + sensor.flicker_depth * np.sin(2 * np.pi * t / sensor.flicker_period_frames))[:, None, None]
+    return np.ascontiguousarray(xt).reshape(T, -1)
+
+
+def crosstalk(xt: np.ndarray, fraction: float, top_edge=True, bottom_edge=True) -> np.ndarray:
+    """``X' = (1 - c) X + c * mean of the 4 neighbours`` on ``[..., H, W]``.
+
+    At the image border the missing neighbours are left out of the mean. ``top_edge`` /
+    ``bottom_edge`` say whether the first / last row is the image border (False when the
+    array is a block with a one-row halo, whose halo rows are then not valid outputs).
+    """
+    total = np.zeros_like(xt)
+    count = np.zeros(xt.shape[-2:])
+    total[..., 1:, :] += xt[..., :-1, :]
+    count[1:, :] += 1
+    total[..., :-1, :] += xt[..., 1:, :]
+    count[:-1, :] += 1
+    total[..., :, 1:] += xt[..., :, :-1]
+    count[:, 1:] += 1
+    total[..., :, :-1] += xt[..., :, 1:]
+    count[:, :-1] += 1
+    return (1.0 - fraction) * xt + fraction * total / count
+
+
+def shot_noise(charge: np.ndarray, electrons: float, rng: np.random.Generator) -> np.ndarray:
+    """Photon shot noise on fixed-point charge ``int64 [T, P]``: ``q = Poisson(N_e q) / N_e``.
+
+    Exact Poisson draws where the mean photo-electron count ``N_e q`` is below
+    ``MU_EXACT_POISSON``; above it the Poisson law is drawn as its normal limit
+    ``N(mu, mu)`` (skewness ``mu**-0.5 < 0.19``, and a spike sums ``N_e`` electrons over
+    several frames, so spike timing cannot tell them apart).
+    """
+    mu = charge.astype(np.float64) * (electrons / ONE)
+    z = rng.standard_normal(mu.shape, dtype=np.float32)
+    n = mu + np.sqrt(mu) * z
+    small = mu < MU_EXACT_POISSON
+    if small.any():
+        n[small] = rng.poisson(mu[small])
+    return _quantise(np.maximum(n, 0.0) / electrons)
+
+
+def rsir_charge(xt: np.ndarray, intensity: float, R: np.ndarray, delta: np.ndarray, rng) -> np.ndarray:
+    """Charge per frame of the paper's reference generator (Zhu et al., ACM MM 2023).
+
+    Per frame: gray level ``v ~ Poisson(I X 255/256)``; interval ``D = 255 / v - 1``;
+    nonuniformity and dark current ``D' = D / (R + D delta)``; quantisation noise
+    ``D'' = D' + U(0, 1)``; charge ``q = 1 / (D'' + 1)``. ``v = 0`` gives ``D = inf`` and
+    ``D' = 1 / delta`` (a dark pixel gets about ``delta`` a frame). ``D''`` is kept >= 0.
+    """
+    v = rng.poisson(xt * (intensity * 255.0 / 256.0)).astype(np.float64)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        D = np.where(v > 0, 255.0 / np.maximum(v, 1.0) - 1.0, np.inf)
+        Dp = np.where(np.isfinite(D), D / (R + D * delta), np.where(delta > 0, 1.0 / np.maximum(delta, 1e-300), np.inf))
+    Dpp = np.maximum(Dp + rng.random(xt.shape), 0.0)
+    with np.errstate(divide="ignore"):
+        return np.where(np.isfinite(Dpp), 1.0 / (Dpp + 1.0), 0.0)
