@@ -97,7 +97,7 @@ class Sensor:
     def sized(self, height: int, width: int) -> "Sensor":
         """This camera's sensor at ``height x width``: its own maps if they fit, else maps drawn
         from ``map_model`` (seeded by ``camera_seed``); an error if neither."""
-        if self.shape in (None, (height, width)):
+        if self.shape == (height, width) or (self.shape is None and self.map_model is None):
             return self
         if self.map_model is None:
             raise InputError(
@@ -106,7 +106,7 @@ class Sensor:
             )
         from .fpn import draw_maps
 
-        resp, dark = draw_maps(self.map_model, height, width, self.camera_seed, self.lux_to_rate)
+        resp, dark = draw_maps(self.map_model, height, width, self.camera_seed, self.lux_to_rate, preset=self.name)
         return self.replace(responsivity=resp, dark_rate=dark)
 
     def maps(self, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:

@@ -27,6 +27,8 @@ import numpy as np
 
 from .errors import InputError, OutputError
 
+_UMASK = os.umask(0o022)
+os.umask(_UMASK)
 LUMA = np.array([0.2126, 0.7152, 0.0722])  # Rec. 709 luminance of linear RGB
 
 
@@ -40,6 +42,7 @@ def atomic_path(dest):
         folder.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix="." + dest.name + ".", suffix=".part", dir=folder)
         os.close(fd)
+        os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; finished files get the usual mode
     except OSError as exc:
         raise OutputError(f"cannot write in {folder}: {exc.strerror or exc}") from None
     try:
@@ -320,10 +323,18 @@ def write_exr(path, image: np.ndarray) -> None:
         os.replace(str(tmp) + ".exr", tmp)
 
 
-def exr_to_radiance(arr: np.ndarray) -> np.ndarray:
-    """Linear EXR pixels -> luminance ``[H, W]`` (alpha is ignored: the render already holds the background)."""
-    if arr.shape[2] >= 3:
-        return (arr[:, :, :3].astype(np.float64) @ LUMA).astype(np.float32)
+def exr_to_radiance(arr: np.ndarray, background: float = 1.0) -> np.ndarray:
+    """Linear EXR pixels -> luminance ``[H, W]``.
+
+    RGBA renders (transparent film, premultiplied) are composited onto white:
+    ``X = lum(RGB) + background * (1 - A)``, as NeRF-synthetic loaders composite their PNGs.
+    """
+    c = arr.shape[2]
+    if c >= 3:
+        y = arr[:, :, :3].astype(np.float64) @ LUMA
+        if c == 4:
+            y = y + background * (1.0 - np.clip(arr[:, :, 3].astype(np.float64), 0.0, 1.0))
+        return y.astype(np.float32)
     return arr[:, :, 0].astype(np.float32)
 
 

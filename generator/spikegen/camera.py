@@ -1,0 +1,136 @@
+"""The NeRF-synthetic camera rig and the camera motion during a view's exposure, pure NumPy.
+
+Conventions (as NeRF-synthetic and Blender): a pose is a camera-to-world ``float64 [4, 4]``
+matrix; the camera looks down its local ``-Z`` with ``+Y`` up; world ``+Z`` is up. Cameras sit
+on a sphere of radius :data:`RADIUS` and look at the origin.
+
+- train and val: directions uniform over the upper hemisphere (seeded per split);
+- test: evenly spaced around a circle at 30 degrees elevation.
+
+Motion during exposure (the paper's "dynamic recording"): over the ``T`` frames of a view the
+camera orbits the world ``Z`` axis through ``motion_deg`` degrees, centred on the view's pose,
+still looking at the origin. Sub-frame ``k`` of ``K`` is at the centre of its slice of the
+exposure, time ``(k + 0.5) / K``, as the sensor model assumes (:func:`spikegen.sensor.frame_segments`),
+so its azimuth offset is ``motion_deg * ((k + 0.5) / K - 0.5)``. The mid-exposure pose (time
+1/2) is the view's ``transform_matrix``; ``motion_deg = 0`` is a static camera.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from .seeding import _word
+
+RADIUS = 4.0311  # NeRF-synthetic camera distance
+CAMERA_ANGLE_X = 0.6911112070083618  # 50 mm lens, 36 mm sensor width
+NEAR, FAR = 2.0, 6.0
+TEST_ELEVATION_DEG = 30.0
+DEFAULT_MOTION_DEG = 1.0  # azimuth swept during one view's exposure
+SPLITS = ("train", "val", "test")
+DEFAULT_VIEWS = {"train": 100, "val": 100, "test": 200}
+
+
+@dataclass(frozen=True)
+class View:
+    """One view: its mid-exposure pose ``[4, 4]`` and its sub-frame poses ``[K, 4, 4]``."""
+
+    split: str
+    index: int
+    pose: np.ndarray
+    subframe_poses: np.ndarray
+
+
+def look_at(position: np.ndarray, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """Camera-to-world ``[4, 4]`` of a camera at ``position [3]`` looking at ``target``."""
+    position = np.asarray(position, dtype=np.float64)
+    forward = np.asarray(target, dtype=np.float64) - position
+    forward /= np.linalg.norm(forward)
+    right = np.cross(forward, np.asarray(up, dtype=np.float64))
+    if np.linalg.norm(right) < 1e-9:  # looking straight up or down: pick any right vector
+        right = np.array([1.0, 0.0, 0.0])
+    right /= np.linalg.norm(right)
+    cam_up = np.cross(right, forward)
+    pose = np.eye(4)
+    pose[:3, 0], pose[:3, 1], pose[:3, 2], pose[:3, 3] = right, cam_up, -forward, position
+    return pose
+
+
+def hemisphere_directions(count: int, rng: np.random.Generator) -> np.ndarray:
+    """``count`` unit vectors ``[count, 3]`` uniform over the upper hemisphere (z >= 0)."""
+    v = rng.standard_normal((count, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    v[:, 2] = np.abs(v[:, 2])
+    return v
+
+
+def circle_directions(count: int, elevation_deg: float = TEST_ELEVATION_DEG) -> np.ndarray:
+    """``count`` unit vectors ``[count, 3]`` evenly spaced in azimuth at ``elevation_deg``."""
+    az = 2.0 * np.pi * np.arange(count) / max(count, 1)
+    el = math.radians(elevation_deg)
+    return np.stack([np.cos(el) * np.cos(az), np.cos(el) * np.sin(az), np.full(count, math.sin(el))], axis=1)
+
+
+def rotation_z(angle_rad: float) -> np.ndarray:
+    """World rotation ``[4, 4]`` about +Z by ``angle_rad``."""
+    c, s = math.cos(angle_rad), math.sin(angle_rad)
+    r = np.eye(4)
+    r[:2, :2] = [[c, -s], [s, c]]
+    return r
+
+
+def subframe_times(subframes: int) -> np.ndarray:
+    """Exposure time ``[K]`` (0..1) of each sub-frame: the centre of its slice."""
+    return (np.arange(subframes) + 0.5) / subframes
+
+
+def subframe_poses(pose: np.ndarray, subframes: int, motion_deg: float = DEFAULT_MOTION_DEG) -> np.ndarray:
+    """Poses ``[K, 4, 4]`` of the K sub-frames: ``pose`` orbited about world Z, centred on it."""
+    offsets = np.radians(motion_deg) * (subframe_times(subframes) - 0.5)
+    return np.stack([rotation_z(a) @ pose for a in offsets])
+
+
+def split_directions(split: str, count: int, seed: int = 0) -> np.ndarray:
+    """Camera directions ``[count, 3]`` of one split (train/val random, test on the circle)."""
+    if split == "test":
+        return circle_directions(count)
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, _word("rig:" + split)]))
+    return hemisphere_directions(count, rng)
+
+
+def make_views(split: str, count: int, subframes: int = 16, motion_deg: float = DEFAULT_MOTION_DEG,
+               seed: int = 0, radius: float = RADIUS) -> list[View]:
+    """The ``count`` views of ``split``: deterministic in (split, count, seed)."""
+    views = []
+    for i, d in enumerate(split_directions(split, count, seed)):
+        pose = look_at(radius * d)
+        views.append(View(split, i, pose, subframe_poses(pose, subframes, motion_deg)))
+    return views
+
+
+def make_rig(counts: dict | None = None, subframes: int = 16, motion_deg: float = DEFAULT_MOTION_DEG,
+             seed: int = 0) -> dict[str, list[View]]:
+    """All splits: ``{"train": [View], "val": [...], "test": [...]}`` with ``counts`` views each."""
+    counts = dict(DEFAULT_VIEWS if counts is None else counts)
+    return {s: make_views(s, int(counts.get(s, 0)), subframes, motion_deg, seed) for s in SPLITS}
+
+
+def focal_px(width: int, camera_angle_x: float = CAMERA_ANGLE_X) -> float:
+    """Focal length in pixels of a ``width``-pixel image."""
+    return 0.5 * width / math.tan(0.5 * camera_angle_x)
+
+
+def project(points: np.ndarray, pose: np.ndarray, width: int, height: int,
+            camera_angle_x: float = CAMERA_ANGLE_X) -> np.ndarray:
+    """Pixel coordinates ``[N, 2]`` (x right, y down) of world ``points [N, 3]``; NaN behind the camera."""
+    w2c = np.linalg.inv(pose)
+    pc = (np.c_[points, np.ones(len(points))] @ w2c.T)[:, :3]
+    f = focal_px(width, camera_angle_x)
+    z = -pc[:, 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = 0.5 * width + f * pc[:, 0] / z
+        y = 0.5 * height - f * pc[:, 1] / z
+    out = np.stack([x, y], axis=1)
+    out[z <= 0] = np.nan
+    return out

@@ -1,0 +1,159 @@
+"""``spikegen`` command line (shared/specs/cli.md). Argument parsing lives here only."""
+from __future__ import annotations
+
+import errno
+import importlib
+import sys
+from pathlib import Path
+
+import click
+import numpy as np
+
+from . import __version__
+from .errors import InputError, SpikegenError
+
+# Commands implemented in other modules, imported only when used (keeps `--help` fast and
+# keeps bpy / plotting out of commands that do not need them).
+LAZY_COMMANDS = {
+    "render": "spikegen.cli_render:render",
+    "calibrate": "spikegen.fidelity.cli:calibrate",
+    "diagnose": "spikegen.fidelity.cli:diagnose",
+}
+
+
+class LazyGroup(click.Group):
+    def list_commands(self, ctx):
+        return sorted(set(super().list_commands(ctx)) | {n for n in LAZY_COMMANDS if self._load(n)})
+
+    def get_command(self, ctx, name):
+        return super().get_command(ctx, name) or self._load(name)
+
+    @staticmethod
+    def _load(name):
+        target = LAZY_COMMANDS.get(name)
+        if target is None:
+            return None
+        module, attr = target.split(":")
+        try:
+            return getattr(importlib.import_module(module), attr)
+        except (ImportError, AttributeError):
+            return None
+
+
+@click.group(cls=LazyGroup, context_settings={"help_option_names": ["-h", "--help"]})
+@click.version_option(__version__, prog_name="spikegen")
+def cli():
+    """Spike-camera datasets: sensor model, conversion, rendering, calibration."""
+
+
+def _size(value):
+    from .spikeio import parse_size
+
+    return None if value is None else parse_size(value)
+
+
+# ---------------------------------------------------------------------- convert
+@cli.command()
+@click.argument("source", type=click.Path(path_type=Path))
+@click.option("--intensity", "intensities", multiple=True, required=True,
+              help="Spikes per 256 frames at X = 1 (repeatable: 16, 32, 64 in the paper).")
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), default=Path("out"), show_default=True,
+              help="Folder that receives <name>_i<I>/.")
+@click.option("--sensor", default="paper", show_default=True,
+              help="ideal | paper | rsir | calibrated | path to a sensor .json.")
+@click.option("--frames", type=int, default=256, show_default=True, help="Readout frames T per view.")
+@click.option("--resolution", type=int, default=None, help="Resample views to N x N (default: as the source).")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
+@click.option("--workers", type=int, default=1, show_default=True, help="Local worker processes.")
+@click.option("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) to run views on.")
+def convert(source, intensities, out_dir, sensor, frames, resolution, seed, workers, scheduler):
+    """Turn a render folder or a NeRF-synthetic folder into spike datasets (never renders)."""
+    from .dataset import convert as run
+
+    folders = run(source, out_dir, intensities, sensor=sensor, frames=frames, seed=seed, resolution=resolution,
+                  workers=workers, scheduler=scheduler, progress=True)
+    for f in folders:
+        click.echo(str(f))
+
+
+# ---------------------------------------------------------------------- verify
+@cli.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+def verify(dataset):
+    """Check every file of DATASET against its manifest.json."""
+    from .dataset import verify as run
+
+    problems = run(dataset)
+    if problems:
+        for p in problems:
+            click.echo(f"{dataset}: {p}", err=True)
+        raise SystemExit(1)
+    click.echo(f"{dataset}: OK")
+
+
+# ---------------------------------------------------------------------- info / preview
+@cli.command()
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--size", default=None, help="WxH, needed for .dat files.")
+def info(file, size):
+    """Frames, size, spike count and mean rate of a spike file."""
+    from .spikeio import read_spikes
+
+    s = read_spikes(file, _size(size))
+    T, H, W = s.shape
+    n = int(s.sum(dtype=np.int64))
+    click.echo(f"file: {file}\nframes: {T}\nsize: {W}x{H}\nspikes: {n}\n"
+               f"mean rate: {n / max(1, s.size):.4f} spikes per pixel-frame")
+
+
+@cli.command()
+@click.argument("file", type=click.Path(path_type=Path))
+@click.option("--out", "out_png", type=click.Path(path_type=Path), required=True, help="PNG to write.")
+@click.option("--size", default=None, help="WxH, needed for .dat files.")
+@click.option("--window", type=int, default=None, help="Frames averaged (TFP window, default: all).")
+def preview(file, out_png, size, window):
+    """Spike-rate image of a spike file (TFP over a window), as a PNG."""
+    from .preview import preview_image
+    from .spikeio import read_spikes, write_png
+
+    if out_png.suffix.lower() != ".png":
+        raise InputError(f"--out {out_png}: expected a .png path")
+    s = read_spikes(file, _size(size))
+    write_png(out_png, preview_image(s, window))
+    click.echo(str(out_png))
+
+
+# ---------------------------------------------------------------------- entry point
+def main(argv=None) -> int:
+    """Run the CLI; any user error becomes one line on stderr and a non-zero exit code."""
+    try:
+        cli.main(args=argv, prog_name="spikegen", standalone_mode=False)
+    except SpikegenError as exc:
+        click.echo(f"spikegen: error: {exc}", err=True)
+        return exc.exit_code
+    except click.exceptions.Abort:
+        click.echo("spikegen: interrupted", err=True)
+        return 130
+    except click.ClickException as exc:
+        click.echo(f"spikegen: error: {exc.format_message()}", err=True)
+        return exc.exit_code
+    except KeyboardInterrupt:
+        click.echo("spikegen: interrupted (finished views are kept; rerun the same command to resume)", err=True)
+        return 130
+    except OSError as exc:
+        if exc.errno == errno.ENOSPC:
+            click.echo(f"spikegen: error: disk full while writing {exc.filename or ''}".rstrip(), err=True)
+            return 3
+        click.echo(f"spikegen: error: {exc.filename or ''}: {exc.strerror or exc}", err=True)
+        return 3
+    except SystemExit as exc:
+        return exc.code if isinstance(exc.code, int) else 0
+    return 0
+
+
+def entry() -> None:  # pragma: no cover - console script shim
+    sys.exit(main())
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

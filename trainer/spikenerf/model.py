@@ -1,0 +1,103 @@
+"""The radiance field: a dense voxel grid plus a tiny MLP (the DVGO / TensoRF family).
+
+One grid ``[1, 1 + C, G, G, G]`` holds raw density (channel 0) and C features; a point's
+values are read by trilinear interpolation (``grid_sample``). Luminance (the sensor is
+monochrome) comes from a small MLP of the features and the viewing direction. The grid is
+upsampled during training (coarse to fine); an occupancy mask of the grid lets the renderer
+skip empty space. The constructor arguments are stored in checkpoints (:meth:`config`).
+"""
+from __future__ import annotations
+
+import math
+
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+
+def _shift_for(alpha_init: float, step_ratio: float) -> float:
+    """Density bias so that an untrained sample of ``step_ratio`` reference voxels has ``alpha_init``."""
+    return math.log(math.expm1(-math.log1p(-alpha_init) / step_ratio))
+
+
+class GridField(nn.Module):
+    """Field over the box ``[-bound, bound]^3``.
+
+    ``query(points [M, 3], dirs [M, 3]) -> (sigma [M] per reference voxel, x [M] in [0, 1])``.
+    """
+
+    def __init__(self, grid_size: int = 32, final_size: int = 128, features: int = 12, hidden: int = 48,
+                 bound: float = 1.5, alpha_init: float = 1e-4, step_ratio: float = 0.5):
+        super().__init__()
+        self.args = dict(grid_size=grid_size, final_size=final_size, features=features, hidden=hidden,
+                         bound=bound, alpha_init=alpha_init, step_ratio=step_ratio)
+        self.bound, self.final_size, self.step_ratio = bound, final_size, step_ratio
+        self.shift = _shift_for(alpha_init, step_ratio)
+        self.grid = nn.Parameter(torch.zeros(1, 1 + features, grid_size, grid_size, grid_size))
+        self.mlp = nn.Sequential(nn.Linear(features + 9, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
+                                 nn.Linear(hidden, 1))
+        self.register_buffer("occupancy", torch.ones(grid_size, grid_size, grid_size, dtype=torch.bool))
+
+    def config(self) -> dict:
+        return dict(self.args, grid_size=self.grid_size)
+
+    @property
+    def grid_size(self) -> int:
+        return int(self.grid.shape[-1])
+
+    @property
+    def voxel(self) -> float:
+        """Edge of a voxel of the current grid, world units."""
+        return 2 * self.bound / (self.grid_size - 1)
+
+    @property
+    def ref_voxel(self) -> float:
+        return 2 * self.bound / (self.final_size - 1)
+
+    def normalise(self, points: torch.Tensor) -> torch.Tensor:
+        """World points [M, 3] -> grid_sample coordinates in [-1, 1] (x, y, z -> last, middle, first axis)."""
+        return (points / self.bound).flip(-1)
+
+    def sample_grid(self, points: torch.Tensor) -> torch.Tensor:
+        """Trilinear values [M, 1 + C] at world points [M, 3]."""
+        g = self.normalise(points).view(1, -1, 1, 1, 3)
+        out = F.grid_sample(self.grid, g, mode="bilinear", align_corners=True)
+        return out.view(self.grid.shape[1], -1).t()
+
+    def query(self, points: torch.Tensor, dirs: torch.Tensor):
+        vals = self.sample_grid(points)
+        sigma = F.softplus(vals[:, 0] + self.shift)
+        pe = torch.cat([dirs, torch.sin(2 * dirs), torch.cos(2 * dirs)], dim=-1)
+        x = torch.sigmoid(self.mlp(torch.cat([vals[:, 1:], pe], dim=-1)).squeeze(-1))
+        return sigma, x
+
+    def occupied(self, points: torch.Tensor) -> torch.Tensor:
+        """bool [M]: the nearest grid point of each world point is marked occupied."""
+        G = self.occupancy.shape[0]
+        idx = ((points / self.bound + 1) * 0.5 * (G - 1)).round().long().clamp(0, G - 1)
+        return self.occupancy[idx[:, 0], idx[:, 1], idx[:, 2]]
+
+    @torch.no_grad()
+    def update_occupancy(self, threshold: float = 1e-4) -> float:
+        """Mark grid points whose (dilated) sample alpha exceeds ``threshold``; returns the occupied fraction."""
+        sigma = F.softplus(self.grid[0, 0] + self.shift)
+        alpha = 1 - torch.exp(-sigma * self.step_ratio * self.voxel / self.ref_voxel)
+        dil = F.max_pool3d(alpha[None, None], kernel_size=3, stride=1, padding=1)[0, 0]
+        self.occupancy = dil > threshold
+        return float(self.occupancy.float().mean())
+
+    @torch.no_grad()
+    def upsample(self, size: int) -> None:
+        """Resample the grid to ``size^3`` (trilinear); occupancy follows by nearest."""
+        new = F.interpolate(self.grid.data, size=(size, size, size), mode="trilinear", align_corners=True)
+        self.grid = nn.Parameter(new)
+        occ = F.interpolate(self.occupancy[None, None].float(), size=(size,) * 3, mode="nearest")[0, 0]
+        self.occupancy = occ > 0
+
+    def tv_loss(self, generator: torch.Generator | None = None, block: int = 24) -> torch.Tensor:
+        """Total variation (squared differences) on a random ``block^3`` sub-grid: a smoothness prior."""
+        G = self.grid_size
+        b = min(block, G)
+        starts = torch.randint(0, G - b + 1, (3,), generator=generator).tolist()
+        sub = self.grid[:, :, starts[0]:starts[0] + b, starts[1]:starts[1] + b, starts[2]:starts[2] + b]
+        return (sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean())

@@ -1,0 +1,58 @@
+"""The differentiable spike sensor: radiance -> expected spike counts (sensor-model.md).
+
+Rate per frame ``lambda = R * ((I / 256) X + d)``. The integrate-and-fire pixel starts at
+``A0 ~ U(0, 1)``, adds ``lambda`` each frame, fires at ``A >= 1`` and *subtracts* the
+threshold. For a constant rate over ``n`` frames its count is ``floor(A0 + n lambda)``
+(one spike a frame at most, so capped at ``n``); over the uniform start phase its
+expectation is exactly ``n * min(lambda, 1)``: a closed form, no loop over frames.
+Consecutive windows of one stream hand their residual charge on, so each window's count is
+``floor(A_w + n lambda)`` with the same expectation.
+
+Reset to zero (the ``reset_to_zero`` effect) would discard the residual: the pixel then
+needs ``ceil(1 / lambda)`` frames per spike, so the rate becomes ``1 / ceil(1 / lambda)``, a
+staircase that is biased low (``lambda = 0.6`` gives 0.5) and has zero gradient almost
+everywhere. :func:`expected_count` supports it with a straight-through gradient (the slope
+of ``1 / (1 / lambda + 1/2)``), for datasets made with that effect.
+"""
+from __future__ import annotations
+
+import torch
+
+
+def spike_rate(x: torch.Tensor, intensity: float, resp: torch.Tensor | None, dark: torch.Tensor | None) -> torch.Tensor:
+    """``lambda = R ((I/256) X + d)`` in spikes per frame; same shape as ``x``."""
+    lam = x * (float(intensity) / 256.0)
+    if dark is not None:
+        lam = lam + dark
+    if resp is not None:
+        lam = lam * resp
+    return lam
+
+
+def expected_count(lam: torch.Tensor, frames, reset: str = "subtract") -> torch.Tensor:
+    """Mean spike count over ``frames`` frames (tensor or number) of a constant rate ``lam``."""
+    lam = lam.clamp(min=0.0)
+    if reset == "subtract":
+        return frames * lam.clamp(max=1.0)
+    if reset != "zero":
+        raise ValueError(f"reset must be 'subtract' or 'zero', got {reset!r}")
+    safe = lam.clamp(min=1e-6)
+    stair = 1.0 / torch.ceil(1.0 / safe - 1e-9)
+    smooth = 1.0 / (1.0 / safe + 0.5)
+    rate = smooth + (stair - smooth).detach()
+    return frames * torch.where(lam > 1e-6, rate, torch.zeros_like(rate))
+
+
+def count_variance(mu: torch.Tensor, electrons: float = 0.0, temporal: float = 0.0) -> torch.Tensor:
+    """Variance of an observed window count around its mean ``mu``.
+
+    ``floor(A + m)`` with a uniform residual ``A`` has variance ``f (1 - f)`` (``f`` the
+    fraction of ``m``), 1/6 on average; shot noise adds ``mu / N_e``; ``temporal`` is any
+    further noise variance per expected spike (e.g. a generator's per-frame noise).
+    """
+    var = torch.full_like(mu, 1.0 / 6.0)
+    if electrons > 0:
+        var = var + mu / electrons
+    if temporal > 0:
+        var = var + temporal * mu
+    return var
