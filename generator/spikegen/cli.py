@@ -118,6 +118,8 @@ def preview(file, out_png, size, window):
 
     if out_png.suffix.lower() != ".png":
         raise InputError(f"--out {out_png}: expected a .png path")
+    if window is not None and window < 1:
+        raise InputError(f"--window {window}: must be at least 1 frame")
     s = read_spikes(file, _size(size))
     write_png(out_png, preview_image(s, window))
     click.echo(str(out_png))

@@ -25,12 +25,12 @@ import numpy as np
 
 from . import __version__
 from .errors import InputError, OutputError
-from .parallel import run_tasks
+from .parallel import connect, run_tasks
 from .presets import get_sensor
 from .seeding import view_seed
 from .sensor import Sensor, simulate
 from .sensorfile import save_sensor
-from .spikeio import (LUMA, atomic_path, check_radiance, exr_to_radiance, read_exr, read_png, sha256_file,
+from .spikeio import (LUMA, atomic_path, check_radiance, exr_size, exr_to_radiance, read_exr, read_png, sha256_file,
                       srgb_to_linear, linear_to_srgb, write_dat, write_json_atomic, write_png)
 
 SPLITS = ("train", "val", "test")
@@ -130,8 +130,22 @@ def _open_nerf(root: Path) -> Source:
             png = root / (fp if fp.endswith(".png") else fp + ".png")
             extra = {k: v for k, v in fr.items() if k in ("rotation",)}
             views.append(View(split, i, f"./{split}/r_{i}", m, [m], png, (), extra))
-    w, h = _png_size(views[0].png)
+    w, h = _same_size(views, _png_size, lambda v: (v.png,))
     return Source("nerf", root, root.resolve().name, cam, w, h, 1, tuple(views))
+
+
+def _same_size(views, size_of, files_of, expected=None) -> tuple[int, int]:
+    """Check (from headers only, before anything is written) that every image of every view
+    exists and has one size (``expected`` (w, h) if given, else the first image's); returns it."""
+    what = "render.json says" if expected is not None else "the first image is"
+    for v in views:
+        for path in files_of(v):
+            size = size_of(path)
+            if expected is None:
+                expected = size
+            elif size != expected:
+                raise InputError(f"{path}: image is {size[0]}x{size[1]}, but {what} {expected[0]}x{expected[1]}")
+    return expected
 
 
 def _open_render(root: Path) -> Source:
@@ -144,10 +158,16 @@ def _open_render(root: Path) -> Source:
         cam, name, splits = float(doc["camera_angle_x"]), str(doc["scene"]), doc["splits"]
     except (KeyError, TypeError, ValueError) as exc:
         raise InputError(f"{jpath}: missing or bad field {exc}") from None
+    if not isinstance(splits, dict) or not all(isinstance(splits.get(s, []), list) for s in SPLITS):
+        raise InputError(f"{jpath}: 'splits' must map train/val/test to lists of views")
+    if K < 1 or w < 1 or h < 1:
+        raise InputError(f"{jpath}: subframes, width and height must be positive")
     views = []
     for split in SPLITS:
         for i, fr in enumerate(splits.get(split, [])):
             where = f"{jpath} {split} view {i}"
+            if not isinstance(fr, dict) or not isinstance(fr.get("file_path", ""), str):
+                raise InputError(f"{where}: expected an object with a string 'file_path'")
             fp = fr.get("file_path", f"./{split}/r_{i}")
             base = root / fp
             subs = [_matrix(m, where) for m in fr.get("subframe_transform_matrices", [])]
@@ -158,6 +178,8 @@ def _open_render(root: Path) -> Source:
                               _matrix(fr.get("transform_matrix"), where), subs, Path(f"{base}.png"), exrs))
     if not views:
         raise InputError(f"{jpath}: lists no rendered views")
+    _same_size(views, _png_size, lambda v: (v.png,), (w, h))
+    _same_size(views, exr_size, lambda v: v.exrs, (w, h))
     info = {k: doc[k] for k in ("engine", "samples", "motion_deg", "seed", "frames") if k in doc}
     return Source("render", root, name, cam, w, h, K, tuple(views), info)
 
@@ -264,22 +286,32 @@ def convert(source, out_dir, intensities, sensor="paper", frames: int = 256, see
     sensor_obj = sensor if isinstance(sensor, Sensor) else get_sensor(sensor, height, width, seed)
     sensor_obj = sensor_obj.sized(height, width)
     sensor_name = sensor if isinstance(sensor, str) else sensor_obj.name
-    folders = []
-    for level in levels:
-        out = Path(out_dir) / f"{src.name}_i{_intensity_label(level)}"
-        params = {"source": src.root.resolve().name, "source_kind": src.kind, "name": src.name,
-                  "intensity": level, "sensor": sensor_name, "frames": int(frames), "subframes": src.subframes,
-                  "width": width, "height": height, "seed": int(seed), "readout_hz": READOUT_HZ,
-                  "render": src.info}
-        _claim(out, params)
-        tasks = [{"out": out, "view": v, "kind": src.kind, "resolution": resolution, "seed": int(seed),
-                  "name": src.name, "intensity": level, "sensor": sensor_obj, "frames": int(frames),
-                  "dat_bytes": int(frames) * width * height // 8} for v in src.views]
-        run_tasks(convert_view, tasks, workers=workers, scheduler=scheduler, progress=progress,
-                  desc=f"{out.name}")
-        _finish(out, src, params, sensor_obj)
-        folders.append(out)
-    return folders
+    if int(workers) != workers or workers < 1:
+        raise InputError(f"--workers must be a positive integer, got {workers}")
+    client = connect(scheduler) if isinstance(scheduler, str) else scheduler  # fail before writing anything
+    try:
+        return [_convert_level(src, out_dir, level, sensor_name, sensor_obj, frames, seed, resolution, width,
+                               height, workers, client, progress) for level in levels]
+    finally:
+        if client is not None and isinstance(scheduler, str):
+            client.close()
+
+
+def _convert_level(src, out_dir, level, sensor_name, sensor_obj, frames, seed, resolution, width, height,
+                   workers, client, progress) -> Path:
+    out = Path(out_dir) / f"{src.name}_i{_intensity_label(level)}"
+    params = {"source": src.root.resolve().name, "source_kind": src.kind, "name": src.name,
+              "intensity": level, "sensor": sensor_name, "frames": int(frames), "subframes": src.subframes,
+              "width": width, "height": height, "seed": int(seed), "readout_hz": READOUT_HZ,
+              "render": src.info}
+    _claim(out, params)
+    tasks = [{"out": out, "view": v, "kind": src.kind, "resolution": resolution, "seed": int(seed),
+              "name": src.name, "intensity": level, "frames": int(frames),
+              "dat_bytes": int(frames) * width * height // 8} for v in src.views]
+    run_tasks(convert_view, tasks, workers=workers, scheduler=client, progress=progress,
+              desc=f"{out.name}", shared={"sensor": sensor_obj})
+    _finish(out, src, params, sensor_obj)
+    return out
 
 
 def _claim(out: Path, params: dict) -> None:
@@ -295,7 +327,7 @@ def _claim(out: Path, params: dict) -> None:
                 raise OutputError(f"{out}: holds a dataset made with other parameters ({path.name}); "
                                   f"choose another --out or remove it")
             return
-    if out.exists() and any(out.iterdir()):
+    if out.exists() and any(not p.name.endswith(".part") for p in out.iterdir()):
         raise OutputError(f"{out}: exists and is not a spikegen dataset folder; choose another --out")
     write_json_atomic(job, {"parameters": params})
 
@@ -314,6 +346,8 @@ def _finish(out: Path, src: Source, params: dict, sensor: Sensor) -> None:
                           for v in views]}
         write_json_atomic(out / f"transforms_{split}.json", doc)
     save_sensor(sensor, out / "sensor")
+    for stale in out.rglob(".*.part"):  # temporaries of writes killed in an earlier run (atomic_path names)
+        stale.unlink(missing_ok=True)
     files = sorted(p for p in out.rglob("*") if p.is_file() and not p.name.startswith(".")
                    and p.name != "manifest.json")
     entries = [{"path": p.relative_to(out).as_posix(), "bytes": p.stat().st_size, "sha256": sha256_file(p)}

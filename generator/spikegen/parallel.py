@@ -6,55 +6,91 @@ change what it writes.
 from __future__ import annotations
 
 from concurrent.futures import ProcessPoolExecutor, as_completed
+from functools import partial
 from typing import Callable, Iterable
 
 from .errors import InputError
 
 
-def run_tasks(fn: Callable, tasks: Iterable, workers: int = 1, scheduler: str | None = None,
-              progress: bool = True, desc: str = "views") -> list:
-    """Apply ``fn`` to every task; results in task order. Shows a tqdm bar when ``progress``."""
+def run_tasks(fn: Callable, tasks: Iterable, workers: int = 1, scheduler=None,
+              progress: bool = True, desc: str = "views", shared: dict | None = None) -> list:
+    """Apply ``fn`` to every task; results in task order. Shows a tqdm bar when ``progress``
+    (and stderr is a terminal).
+
+    ``scheduler``: a Dask scheduler address or a connected ``distributed.Client`` (see
+    :func:`connect`). ``shared``: entries common to every task (e.g. a sensor with its maps),
+    merged into each task dict where it runs; on Dask they are sent to the workers once.
+    On the first failing task the tasks not yet started are cancelled and its error raised.
+    """
     tasks = list(tasks)
     if workers < 1:
         raise InputError(f"--workers must be >= 1, got {workers}")
+    shared = dict(shared or {})
     bar = _bar(len(tasks), progress, desc)
     try:
-        if scheduler:
-            return _run_dask(fn, tasks, scheduler, bar)
+        if scheduler is not None:
+            if isinstance(scheduler, str):
+                with connect(scheduler) as client:
+                    return _run_dask(fn, tasks, client, bar, shared)
+            return _run_dask(fn, tasks, scheduler, bar, shared)
+        call = partial(_with_shared, fn, shared=shared)
         if workers == 1 or len(tasks) <= 1:
             out = []
             for t in tasks:
-                out.append(fn(t))
+                out.append(call(t))
                 bar.update(1)
             return out
-        results = [None] * len(tasks)
-        with ProcessPoolExecutor(max_workers=workers) as pool:
-            futures = {pool.submit(fn, t): i for i, t in enumerate(tasks)}
-            for fut in as_completed(futures):
-                results[futures[fut]] = fut.result()
-                bar.update(1)
-        return results
+        return _run_pool(call, tasks, workers, bar)
     finally:
         bar.close()
 
 
-def _run_dask(fn, tasks, address, bar):
+def _with_shared(fn: Callable, task: dict, shared: dict | None = None):
+    return fn({**task, **shared} if shared else task)
+
+
+def _run_pool(call, tasks, workers, bar):
+    results = [None] * len(tasks)
+    pool = ProcessPoolExecutor(max_workers=workers)
     try:
-        from distributed import Client, as_completed as dask_completed
+        futures = {pool.submit(call, t): i for i, t in enumerate(tasks)}
+        for fut in as_completed(futures):
+            results[futures[fut]] = fut.result()
+            bar.update(1)
+    except BaseException:
+        pool.shutdown(wait=True, cancel_futures=True)  # views already running finish; none start
+        raise
+    pool.shutdown(wait=True)
+    return results
+
+
+def connect(address: str):
+    """A ``distributed.Client`` connected to the scheduler at ``address`` (one clear error if not)."""
+    try:
+        from distributed import Client
     except ImportError:
         raise InputError("--scheduler needs dask.distributed (pip install 'dask[distributed]')") from None
     try:
-        client = Client(address, timeout="10s")
-    except (OSError, TimeoutError, ValueError) as exc:
+        return Client(address, timeout="10s")
+    except (OSError, TimeoutError, ValueError, TypeError) as exc:
         raise InputError(f"--scheduler {address}: cannot connect to a Dask scheduler ({exc})") from None
-    with client:
-        futures = client.map(fn, tasks, pure=False)
-        index = {f.key: i for i, f in enumerate(futures)}
-        results = [None] * len(tasks)
+
+
+def _run_dask(fn, tasks, client, bar, shared):
+    from distributed import as_completed as dask_completed
+
+    shared_future = client.scatter([shared], broadcast=True, hash=False)[0] if shared else None
+    futures = client.map(partial(_with_shared, fn), tasks, shared=shared_future, pure=False)
+    index = {f.key: i for i, f in enumerate(futures)}
+    results = [None] * len(tasks)
+    try:
         for fut in dask_completed(futures):
             results[index[fut.key]] = fut.result()
             bar.update(1)
-        return results
+    except BaseException:
+        client.cancel(futures)
+        raise
+    return results
 
 
 class _NoBar:
@@ -70,4 +106,4 @@ def _bar(total, progress, desc):
         return _NoBar()
     from tqdm import tqdm
 
-    return tqdm(total=total, desc=desc, unit="view", leave=False)
+    return tqdm(total=total, desc=desc, unit="view", leave=False, disable=None)  # None: off when not a tty

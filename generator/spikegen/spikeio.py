@@ -17,10 +17,12 @@ so an interrupted run never leaves a half-written file under the final name.
 from __future__ import annotations
 
 import contextlib
+import errno
 import hashlib
 import json
 import os
 import tempfile
+import zipfile
 from pathlib import Path
 
 import numpy as np
@@ -44,7 +46,8 @@ def atomic_path(dest):
         os.close(fd)
         os.chmod(tmp, 0o666 & ~_UMASK)  # mkstemp makes 0600; finished files get the usual mode
     except OSError as exc:
-        raise OutputError(f"cannot write in {folder}: {exc.strerror or exc}") from None
+        why = "a file is in the way of the folder" if exc.errno in (errno.EEXIST, errno.ENOTDIR) else exc.strerror
+        raise OutputError(f"cannot write in {folder}: {why or exc}") from None
     try:
         yield Path(tmp)
         os.replace(tmp, dest)
@@ -162,7 +165,7 @@ def read_npz(path) -> np.ndarray:
             raise InputError(f"{path}: no 'spikes'+'shape' (or 'spk', 'arr_0') array inside")
     except InputError:
         raise
-    except (OSError, ValueError, EOFError, KeyError) as exc:
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
         raise InputError(f"{path}: not a readable .npz spike file ({exc})") from None
 
 
@@ -307,6 +310,22 @@ def read_exr(path) -> np.ndarray:
     except Exception as exc:  # OpenEXR raises plain RuntimeError/OSError for corrupt files
         raise InputError(f"{path}: not a readable OpenEXR image ({exc.__class__.__name__})") from None
     return arr
+
+
+def exr_size(path) -> tuple[int, int]:
+    """(width, height) of an OpenEXR image from its header only (pixels are not read)."""
+    try:
+        import OpenEXR
+    except ImportError:
+        raise InputError(f"{path}: reading EXR needs the OpenEXR package (pip install OpenEXR)") from None
+    if not Path(path).is_file():
+        raise InputError(f"{path}: no such file")
+    try:
+        with OpenEXR.File(str(path), header_only=True) as f:
+            lo, hi = f.header()["dataWindow"]
+    except Exception as exc:  # OpenEXR raises plain RuntimeError for corrupt files
+        raise InputError(f"{path}: not a readable OpenEXR image ({exc.__class__.__name__})") from None
+    return int(hi[0] - lo[0] + 1), int(hi[1] - lo[1] + 1)
 
 
 def write_exr(path, image: np.ndarray) -> None:

@@ -1,0 +1,92 @@
+"""``spikegen render``: render a scene once through Blender, then convert it to every intensity."""
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+import click
+
+from .camera import DEFAULT_MOTION_DEG
+from .errors import InputError
+from .render import QUICK, RenderFolder, RenderJob, check_job, convert_all, identify_blend, images_per_view, \
+    parse_views, render_steps
+from .scenes import SCENES
+
+
+@click.command()
+@click.option("--scene", default=None, help=f"Built-in scene: {' | '.join(SCENES)}.")
+@click.option("--intensity", "intensities", multiple=True, required=True,
+              help="Spikes per 256 frames at X = 1 (repeatable: 16, 32, 64 in the paper).")
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), default=Path("out"), show_default=True,
+              help="Folder receiving <scene>_render/ and <scene>_i<I>/.")
+@click.option("--resolution", type=int, default=None, help="Image width and height [default: 400; 64 with --quick].")
+@click.option("--views", default=None, help="train,val,test view counts [default: 100,100,200; 4,2,4 with --quick].")
+@click.option("--subframes", type=int, default=16, show_default=True, help="Sub-frames K rendered per view.")
+@click.option("--frames", type=int, default=256, show_default=True, help="Readout frames T per view.")
+@click.option("--motion", "motion_deg", type=float, default=DEFAULT_MOTION_DEG, show_default=True,
+              help="Degrees the camera orbits (about world Z) during a view's frames; 0 = static.")
+@click.option("--samples", type=int, default=RenderJob.samples, show_default=True,
+              help="Cycles samples per sub-frame (the same noise pattern in every sub-frame of a view).")
+@click.option("--png-samples", type=int, default=RenderJob.png_samples, show_default=True,
+              help="Cycles samples of the ground-truth PNG.")
+@click.option("--engine", type=click.Choice(["cycles", "workbench"]), default="cycles", show_default=True,
+              help="cycles (default) or workbench (quick previews).")
+@click.option("--blend", type=click.Path(path_type=Path), default=None, help="Render this .blend instead.")
+@click.option("--sensor", default="paper", show_default=True,
+              help="ideal | paper | rsir | calibrated | path to a sensor .json.")
+@click.option("--seed", type=int, default=0, show_default=True, help="Seed of cameras, render noise and spikes.")
+@click.option("--workers", type=int, default=1, show_default=True, help="Local worker processes for conversion.")
+@click.option("--scheduler", default=None, help="Dask scheduler address for conversion.")
+@click.option("--quick", is_flag=True, help="Small and fast: 64 x 64, views 4,2,4 (unless given).")
+def render(scene, intensities, out_dir, resolution, views, subframes, frames, motion_deg, samples, png_samples,
+           engine, blend, sensor, seed, workers, scheduler, quick):
+    """Render a scene through Blender and write <out>/<scene>_i<I>/ for each intensity."""
+    from .dataset import check_intensity
+
+    levels = [check_intensity(i) for i in intensities]  # fail before rendering anything
+    name, source = _scene_name(scene, blend)
+    res = resolution or (QUICK["resolution"] if quick else 400)
+    counts = parse_views(views) if views else (QUICK["views"] if quick else (100, 100, 200))
+    job = RenderJob(name, res, res, counts, subframes, frames, motion_deg, engine, samples, png_samples, seed,
+                    source=source)
+    check_job(job)
+    folder = run_render(job, out_dir, blend)
+    for f in convert_all(folder, out_dir, levels, sensor=sensor, seed=seed, workers=workers, scheduler=scheduler,
+                         progress=True):
+        click.echo(str(f))
+
+
+def _scene_name(scene, blend) -> tuple[str, str]:
+    if blend is not None:
+        if scene is not None:
+            raise InputError("give either --scene or --blend, not both")
+        name, digest = identify_blend(blend)
+        if name in SCENES:
+            click.echo(f"{blend}: the original NeRF-synthetic '{name}' scene", err=True)
+        return name, f"blend:{digest}"
+    if scene is None:
+        raise InputError(f"--scene is required (one of {', '.join(SCENES)}) unless --blend is given")
+    if scene not in SCENES:
+        raise InputError(f"--scene {scene!r}: expected one of {', '.join(SCENES)}")
+    return scene, "builtin"
+
+
+def run_render(job: RenderJob, out_dir, blend=None) -> RenderFolder:
+    """Render every missing view of ``job`` into ``<out_dir>/<scene>_render`` with a progress bar."""
+    from tqdm import tqdm
+
+    from .render_blender import renderer_for
+
+    renderer = None
+    if blend is not None:  # the camera's field of view is part of the job, known once the file is open
+        renderer = renderer_for(job, blend)
+        job = dataclasses.replace(job, camera_angle_x=renderer.camera_angle_x())
+    folder = RenderFolder.open(out_dir, job)
+    pending = folder.pending()
+    if not pending:
+        return folder
+    renderer = renderer or renderer_for(job, blend)
+    with tqdm(total=len(pending) * images_per_view(job), desc=f"render {job.scene}", unit="img") as bar:
+        for _ in render_steps(folder, renderer):
+            bar.update()
+    return folder

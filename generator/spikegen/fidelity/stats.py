@@ -1,0 +1,310 @@
+"""Statistics of spike streams that separate the sensor effects (sensor-model.md), pure NumPy.
+
+Everything here takes a stream ``uint8 [T, H, W]`` (or its pixel-major spike times) and returns
+plain arrays or dicts; nothing simulates or fits a sensor. The discrepancy measures at the end
+compare a measured stream with a simulated one and are what ``spikegen diagnose`` reports as
+"baseline" / "extended" / "gain".
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+MAX_SPAN = 4  # span (in ISIs) of the long-span timing variance, see PixelStats.span_var
+
+
+@dataclass
+class PixelStats:
+    """Per-pixel timing statistics of a stream of ``T`` frames (arrays are ``[P]``, P = H * W).
+
+    n: spike count. first / last: frame of the first / last spike (-1 if none).
+    rate: spikes per frame, ``(n - 1) / (last - first)`` when n >= 2 (exact to a fraction of a
+    frame for a regular pixel, unlike the count ``n / T``), else ``n / T``.
+    isi_mean, isi_var: mean and variance of the inter-spike intervals (NaN below 2 / 3 ISIs).
+    span_var: variance of ``t[i + MAX_SPAN] - t[i]`` (NaN below 3 such spans); for a pixel
+    whose intervals have variance v and are independent, ``span_var - MAX_SPAN * v`` is the
+    frame quantisation, so ``(span_var - isi_var) / (MAX_SPAN - 1)`` estimates v without it.
+    isi_min: shortest interval (0 if none). single: all intervals equal (needs >= 3 ISIs).
+    ones: number of intervals of exactly one frame.
+    """
+
+    frames: int
+    n: np.ndarray
+    first: np.ndarray
+    last: np.ndarray
+    rate: np.ndarray
+    isi_mean: np.ndarray
+    isi_var: np.ndarray
+    span_var: np.ndarray
+    isi_min: np.ndarray
+    single: np.ndarray
+    ones: np.ndarray
+    n_isi: np.ndarray
+    isi_values: np.ndarray  # all intervals, pooled  [n_isi_total]
+
+
+def spike_times(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(pixel, frame)`` of every spike, sorted by pixel then frame (``int64 [N]`` each)."""
+    T = spikes.shape[0]
+    flat = np.ascontiguousarray(spikes.reshape(T, -1).T)  # [P, T]
+    pix, t = np.nonzero(flat)
+    return pix.astype(np.int64), t.astype(np.int64)
+
+
+def _grouped_var(values, groups, P, min_count):
+    cnt = np.bincount(groups, minlength=P).astype(np.float64)
+    s1 = np.bincount(groups, weights=values, minlength=P)
+    s2 = np.bincount(groups, weights=values * values, minlength=P)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        mean = s1 / cnt
+        var = (s2 - cnt * mean * mean) / (cnt - 1)
+    var = np.where(cnt >= min_count, np.maximum(var, 0.0), np.nan)
+    mean = np.where(cnt >= 1, mean, np.nan)
+    return mean, var, cnt
+
+
+def pixel_stats(spikes: np.ndarray) -> PixelStats:
+    """Timing statistics of every pixel of ``spikes [T, H, W]`` (see :class:`PixelStats`)."""
+    T = spikes.shape[0]
+    P = int(np.prod(spikes.shape[1:]))
+    pix, t = spike_times(spikes)
+    n = np.bincount(pix, minlength=P)
+    ends = np.cumsum(n)
+    starts = ends - n
+    has = n > 0
+    first = np.full(P, -1, dtype=np.int64)
+    last = np.full(P, -1, dtype=np.int64)
+    first[has] = t[starts[has]]
+    last[has] = t[ends[has] - 1]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
+    same = pix[1:] == pix[:-1]
+    isi = (t[1:] - t[:-1])[same].astype(np.float64)
+    isi_pix = pix[1:][same]
+    isi_mean, isi_var, n_isi = _grouped_var(isi, isi_pix, P, 3)
+    m = MAX_SPAN
+    same_m = pix[m:] == pix[:-m]
+    span = (t[m:] - t[:-m])[same_m].astype(np.float64)
+    _, span_var, _ = _grouped_var(span, pix[m:][same_m], P, 3)
+    isi_min = np.zeros(P)
+    isi_max = np.zeros(P)
+    if isi.size:
+        order = np.lexsort((isi, isi_pix))  # by pixel, then interval
+        sp, si = isi_pix[order], isi[order]
+        firsts = np.r_[True, sp[1:] != sp[:-1]]
+        lasts = np.r_[sp[1:] != sp[:-1], True]
+        isi_min[sp[firsts]] = si[firsts]
+        isi_max[sp[lasts]] = si[lasts]
+    ones = np.bincount(isi_pix, weights=(isi == 1).astype(np.float64), minlength=P)
+    single = (n_isi >= 3) & (isi_min == isi_max)
+    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi)
+
+
+def window_rate(spikes: np.ndarray) -> np.ndarray:
+    """Per-pixel rate ``[P]`` of a stream (the ``rate`` of :func:`pixel_stats`, cheaper)."""
+    T = spikes.shape[0]
+    flat = spikes.reshape(T, -1)
+    n = flat.sum(axis=0, dtype=np.int64)
+    fired = flat.astype(bool)
+    first = np.argmax(fired, axis=0)
+    last = T - 1 - np.argmax(fired[::-1], axis=0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
+
+
+def excess_interval_var(meas: PixelStats) -> np.ndarray:
+    """Interval variance beyond frame quantisation, ``[P]`` frames**2 (NaN where unknown).
+
+    ``(span_var - isi_var) / (MAX_SPAN - 1)``: for independent intervals of variance v,
+    ``span_var = MAX_SPAN v + q`` and ``isi_var = v + q`` share the quantisation term q.
+    """
+    return (meas.span_var - meas.isi_var) / (MAX_SPAN - 1)
+
+
+# ---------------------------------------------------------------------- population signal
+def population_signal(spikes: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """Spikes per frame summed over the pixels of ``mask [H, W]`` (or ``[P]``): ``float64 [T]``."""
+    T = spikes.shape[0]
+    flat = spikes.reshape(T, -1)
+    return flat[:, np.asarray(mask).reshape(-1)].sum(axis=1, dtype=np.int64).astype(np.float64)
+
+
+@dataclass
+class SineFit:
+    period_frames: float
+    depth: float  # relative modulation of the light: amplitude / light level
+    phase: float  # radians, of sin(2 pi t / P + phase)
+    z: float  # amplitude over its standard error
+    residual_sd: float
+
+
+def _sine_design(t, light, freq):
+    w = 2 * np.pi * freq * t
+    return np.stack([np.ones_like(t), light, light * np.sin(w), light * np.cos(w)], axis=1)
+
+
+def _sine_rss(s, t, light, freq):
+    A = _sine_design(t, light, freq)
+    coef, *_ = np.linalg.lstsq(A, s, rcond=None)
+    r = s - A @ coef
+    return float(r @ r), coef
+
+
+def fit_sine(signal: np.ndarray, light: np.ndarray, min_period: float = 6.0, max_period: float | None = None) -> SineFit:
+    """Fit ``s(t) = c0 + c1 L(t) + L(t) (a sin wt + b cos wt)`` over a grid of periods.
+
+    signal ``s [T]``: spikes per frame of a pixel population; light ``L [T]``: the spikes per
+    frame that the light (not the dark current) gives the same population, as the model
+    expects. depth = sqrt(a^2 + b^2). The grid has four points per Fourier bin, then a
+    golden-section refinement around the best.
+    """
+    s = np.asarray(signal, dtype=np.float64)
+    T = s.size
+    t = np.arange(T, dtype=np.float64)
+    light = np.asarray(light, dtype=np.float64)
+    max_period = max_period or 2.0 * T
+    freqs = np.arange(1.0 / max_period, 1.0 / min_period, 1.0 / (4 * T))
+    rss = np.array([_sine_rss(s, t, light, f)[0] for f in freqs])
+    i = int(np.argmin(rss))
+    lo, hi = freqs[max(i - 1, 0)], freqs[min(i + 1, freqs.size - 1)]
+    best = _golden(lambda f: _sine_rss(s, t, light, f)[0], lo, hi, 20)
+    r, coef = _sine_rss(s, t, light, best)
+    dof = max(T - 4, 1)
+    sd = math.sqrt(r / dof)
+    depth = float(math.hypot(coef[2], coef[3]))
+    lbar = float(np.sqrt(np.mean(light * light))) or 1.0
+    se = sd * math.sqrt(2.0 / T) / lbar
+    return SineFit(1.0 / best, depth, float(math.atan2(coef[3], coef[2])), depth / max(se, 1e-12), sd)
+
+
+def _golden(f, lo, hi, iters):
+    g = (math.sqrt(5) - 1) / 2
+    a, b = lo, hi
+    c, d = b - g * (b - a), a + g * (b - a)
+    fc, fd = f(c), f(d)
+    for _ in range(iters):
+        if fc < fd:
+            b, d, fd = d, c, fc
+            c = b - g * (b - a)
+            fc = f(c)
+        else:
+            a, c, fc = c, d, fd
+            d = a + g * (b - a)
+            fd = f(d)
+    return (a + b) / 2
+
+
+def golden_min(f, lo, hi, iters=30):
+    """Minimise a unimodal ``f`` on ``[lo, hi]``; returns the argument."""
+    return _golden(f, lo, hi, iters)
+
+
+# ---------------------------------------------------------------------- spatial helpers
+def neighbour_mean(x: np.ndarray) -> np.ndarray:
+    """Mean of the 4 neighbours of every pixel of ``[..., H, W]`` (missing ones left out)."""
+    total = np.zeros_like(x, dtype=np.float64)
+    count = np.zeros(x.shape[-2:])
+    total[..., 1:, :] += x[..., :-1, :]
+    count[1:, :] += 1
+    total[..., :-1, :] += x[..., 1:, :]
+    count[:-1, :] += 1
+    total[..., :, 1:] += x[..., :, :-1]
+    count[:, 1:] += 1
+    total[..., :, :-1] += x[..., :, 1:]
+    count[:, :-1] += 1
+    return total / count
+
+
+def median3x3(x: np.ndarray) -> np.ndarray:
+    """3 x 3 median filter of ``[H, W]`` with edge replication."""
+    p = np.pad(np.asarray(x, dtype=np.float64), 1, mode="edge")
+    H, W = x.shape
+    stack = np.stack([p[i:i + H, j:j + W] for i in range(3) for j in range(3)])
+    return np.median(stack, axis=0)
+
+
+def robust_sd(a) -> float:
+    a = np.asarray(a, dtype=np.float64)
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return float("nan")
+    return float(1.4826 * np.median(np.abs(a - np.median(a))))
+
+
+# ---------------------------------------------------------------------- discrepancy measures
+MEASURES = {
+    "rate_rel_rmse": "RMS relative error of per-pixel spike rates (pixels with >= 2 spikes measured)",
+    "column_profile_rmse": "RMS relative error of per-column mean rates",
+    "dark_rate_error": "|simulated - measured| mean rate of the darkest 10 % of pixels, spikes/frame",
+    "hot_pixel_error": "pixels whose rate is off by more than 0.03 spikes/frame, fraction",
+    "isi_histogram_tv": "total-variation distance of the pooled inter-spike-interval histograms",
+    "isi_cv_error": "mean |difference| of per-pixel interval coefficients of variation",
+    "consecutive_fraction_error": "|difference| of the fraction of one-frame intervals",
+    "spectrum_log_rmse": "RMS difference of log power of the population signal (16 frequency bands)",
+}
+
+
+def discrepancies(measured: np.ndarray, simulated: np.ndarray, radiance_mean: np.ndarray) -> dict:
+    """Named measures (see :data:`MEASURES`) of how far ``simulated [T, H, W]`` is from
+    ``measured [T, H, W]``; ``radiance_mean [H, W]`` ranks the pixels from dark to bright.
+    Smaller is better; 0 is a perfect match."""
+    pm, ps = pixel_stats(measured), pixel_stats(simulated)
+    T = measured.shape[0]
+    cm, cs = measured.reshape(T, -1).mean(0), simulated.reshape(T, -1).mean(0)
+    ok = pm.n >= 2
+    rel = (ps.rate[ok] - pm.rate[ok]) / pm.rate[ok]
+    H, W = measured.shape[1:]
+    colm, cols = cm.reshape(H, W).mean(0), cs.reshape(H, W).mean(0)
+    good = colm > 0
+    dark = np.asarray(radiance_mean).reshape(-1) <= np.quantile(radiance_mean, 0.1)
+    return {
+        "rate_rel_rmse": _rms(rel),
+        "column_profile_rmse": _rms(cols[good] / colm[good] - 1.0),
+        "dark_rate_error": float(abs(cs[dark].mean() - cm[dark].mean())),
+        "hot_pixel_error": float(np.mean(np.abs(cs - cm) > 0.03)),
+        "isi_histogram_tv": _isi_tv(pm.isi_values, ps.isi_values, T),
+        "isi_cv_error": _cv_error(pm, ps),
+        "consecutive_fraction_error": float(abs(_frac_ones(pm) - _frac_ones(ps))),
+        "spectrum_log_rmse": _spectrum_error(measured, simulated),
+    }
+
+
+def _rms(a) -> float:
+    a = np.asarray(a, dtype=np.float64)
+    return float(np.sqrt(np.mean(a * a))) if a.size else 0.0
+
+
+def _isi_tv(a, b, T) -> float:
+    if a.size == 0 or b.size == 0:
+        return float(a.size != b.size)
+    ha = np.bincount(a.astype(np.int64), minlength=T + 1) / a.size
+    hb = np.bincount(b.astype(np.int64), minlength=T + 1) / b.size
+    return float(0.5 * np.abs(ha - hb).sum())
+
+
+def _cv_error(pm: PixelStats, ps: PixelStats) -> float:
+    ok = (pm.n_isi >= 4) & (ps.n_isi >= 4)
+    if not ok.any():
+        return 0.0
+    cvm = np.sqrt(pm.isi_var[ok]) / pm.isi_mean[ok]
+    cvs = np.sqrt(ps.isi_var[ok]) / ps.isi_mean[ok]
+    return float(np.mean(np.abs(cvm - cvs)))
+
+
+def _frac_ones(p: PixelStats) -> float:
+    return float(p.ones.sum() / max(p.isi_values.size, 1))
+
+
+def _spectrum_error(a, b, bands=16) -> float:
+    pa, pb = _band_power(a, bands), _band_power(b, bands)
+    return _rms(np.log10(pa + 1e-12) - np.log10(pb + 1e-12))
+
+
+def _band_power(spikes, bands):
+    T = spikes.shape[0]
+    s = spikes.reshape(T, -1).sum(axis=1, dtype=np.int64).astype(np.float64)
+    p = np.abs(np.fft.rfft(s - s.mean())) ** 2 / T
+    edges = np.unique(np.geomspace(1, p.size, bands + 1).astype(int))
+    return np.array([p[a:b].mean() for a, b in zip(edges[:-1], edges[1:])])

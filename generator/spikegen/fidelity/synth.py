@@ -1,0 +1,116 @@
+"""The effects of sensor-model.md as data: names, parameters, detectability envelope, and a
+generator of "measured" recordings with known effects (for the hidden-effect tests and docs).
+
+Map effects are drawn so that the realised map has exactly the named statistic:
+``R = C[column] * P[pixel]`` with ``std(C) = column sigma`` (mean 1) and ``std(P) = gain sigma``
+(median 1); ``d = rate`` everywhere plus ``count`` hot pixels of rate ``U(hot_min, hot_max)``.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from ..sensor import Sensor
+
+EFFECTS = ("gain_nonuniformity", "column_pattern", "dark_current", "hot_pixels", "shot_noise", "reset_to_zero",
+           "refractory", "flicker", "crosstalk", "nonlinearity")
+
+# The detectability envelope (the issue's numbers): the weakest effect the tools must find in a
+# recording of >= 1000 frames, >= 64 x 64 pixels, intensity 32..256, radiance spanning 0.05..1.
+ENVELOPE = {
+    "gain_nonuniformity": {"sigma": 0.03},
+    "column_pattern": {"sigma": 0.02},
+    "dark_current": {"rate": 0.002},
+    "hot_pixels": {"count": 5, "rate": 0.05},
+    "shot_noise": {"electrons": 2000},
+    "reset_to_zero": {},
+    "refractory": {"frames": 1},
+    "flicker": {"depth": 0.05, "period_frames": (10, 1000)},
+    "crosstalk": {"fraction": 0.05},
+    "nonlinearity": {"gamma_offset": 0.1},
+}
+
+# Ranges the tests draw from (lower ends = the envelope; upper ends are this project's choice).
+RANGES = {
+    "gain_nonuniformity": {"sigma": (0.03, 0.12)},
+    "column_pattern": {"sigma": (0.02, 0.08)},
+    "dark_current": {"rate": (0.002, 0.02)},
+    "hot_pixels": {"count": (5, 30)},
+    "shot_noise": {"electrons": (20, 2000)},
+    "reset_to_zero": {},
+    "refractory": {"frames": (1, 4)},
+    "flicker": {"period_frames": (10, 1000), "depth": (0.05, 0.4)},
+    "crosstalk": {"fraction": (0.05, 0.3)},
+    "nonlinearity": {"gamma": (0.6, 1.5)},
+}
+HOT_RATE = (0.05, 0.3)
+
+
+def draw_parameters(name: str, rng: np.random.Generator) -> dict:
+    """Random parameters of effect ``name`` inside :data:`RANGES` (log-uniform for scales)."""
+    if name == "reset_to_zero":
+        return {}
+    if name == "refractory":
+        return {"frames": int(rng.integers(1, 5))}
+    if name == "hot_pixels":
+        return {"count": int(rng.integers(5, 31))}
+    if name == "nonlinearity":
+        off = rng.uniform(0.1, 0.45)
+        return {"gamma": float(1 + off if rng.random() < 0.5 else 1 - off)}
+    out = {}
+    for key, (lo, hi) in RANGES[name].items():
+        out[key] = float(math.exp(rng.uniform(math.log(lo), math.log(hi))))
+    return out
+
+
+def test_radiance(height: int, width: int, rng: np.random.Generator) -> np.ndarray:
+    """A textured reference ``float64 [H, W]`` spanning 0.05..1 (log-uniform-ish): a smooth
+    field plus pixel-scale texture, so both per-pixel and neighbourhood effects show."""
+    yy, xx = np.mgrid[0:height, 0:width] / max(height, width)
+    smooth = 0.5 + 0.25 * np.sin(2 * np.pi * (xx * rng.uniform(1, 2) + yy * rng.uniform(0.5, 1.5)))
+    u = np.clip(smooth + 0.35 * rng.uniform(-1, 1, size=(height, width)), 0.0, 1.0)
+    return 0.05 * 20.0 ** u
+
+
+def _standard(z: np.ndarray) -> np.ndarray:
+    return (z - z.mean()) / z.std()
+
+
+def make_sensor(effects: dict, height: int, width: int, rng: np.random.Generator) -> Sensor:
+    """A sensor with the given effects (``{name: parameters}``) at ``height x width``."""
+    R = np.ones((height, width))
+    d = np.zeros((height, width))
+    if "gain_nonuniformity" in effects:
+        p = 1.0 + effects["gain_nonuniformity"]["sigma"] * _standard(rng.standard_normal((height, width)))
+        R *= np.maximum(p, 0.05) / np.median(p)
+    if "column_pattern" in effects:
+        R *= (1.0 + effects["column_pattern"]["sigma"] * _standard(rng.standard_normal(width)))[None, :]
+    if "dark_current" in effects:
+        d += effects["dark_current"]["rate"]
+    if "hot_pixels" in effects:
+        idx = rng.choice(height * width, size=effects["hot_pixels"]["count"], replace=False)
+        d.reshape(-1)[idx] += rng.uniform(*HOT_RATE, size=idx.size)
+    kw = {"responsivity": R if not np.all(R == 1) else None, "dark_rate": d if d.any() else None}
+    if "shot_noise" in effects:
+        kw["electrons"] = effects["shot_noise"]["electrons"]
+    if "reset_to_zero" in effects:
+        kw["reset"] = "zero"
+    if "refractory" in effects:
+        kw["refractory_frames"] = effects["refractory"]["frames"]
+    if "flicker" in effects:
+        kw["flicker_period_frames"] = effects["flicker"]["period_frames"]
+        kw["flicker_depth"] = effects["flicker"]["depth"]
+    if "crosstalk" in effects:
+        kw["crosstalk_fraction"] = effects["crosstalk"]["fraction"]
+    if "nonlinearity" in effects:
+        kw["gamma"] = effects["nonlinearity"]["gamma"]
+    return Sensor(name="hidden", **kw)
+
+
+def true_value(name: str, params: dict):
+    """The parameter a diagnosis must estimate for effect ``name`` (None for on/off effects)."""
+    key = {"gain_nonuniformity": "sigma", "column_pattern": "sigma", "dark_current": "rate", "hot_pixels": "count",
+           "shot_noise": "electrons", "refractory": "frames", "flicker": "depth", "crosstalk": "fraction",
+           "nonlinearity": "gamma"}.get(name)
+    return (key, params[key]) if key else (None, None)

@@ -1,0 +1,361 @@
+"""The one module that talks to Blender (``bpy``, imported lazily inside functions).
+
+- :func:`build_bpy_scene` turns a :class:`~spikegen.scenes.SceneDescription` into a Blender scene;
+- :func:`open_blend` opens a user's ``.blend`` instead;
+- :class:`BlenderRenderer` renders one camera pose at a time: a linear OpenEXR sub-frame
+  (RGBA, premultiplied, transparent film) or the 8-bit sRGB RGBA ground-truth PNG.
+
+Determinism and speed. Cycles runs on the CPU with a fixed thread count, one tile, a fixed
+seed per view (``use_animated_seed`` off, so all sub-frames of a view share one noise pattern:
+noise that changed between sub-frames would turn into spurious spikes), no denoiser, no
+adaptive sampling, no dithering, and persistent data (the scene is synced once; only the
+camera moves between renders). Colour management is "Standard" so the PNG is plain sRGB.
+"""
+from __future__ import annotations
+
+import contextlib
+import math
+import os
+import sys
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .camera import CAMERA_ANGLE_X
+from .errors import InputError
+from .spikeio import atomic_path
+
+ENGINES = {"cycles": "CYCLES", "workbench": "BLENDER_WORKBENCH"}
+
+
+def _bpy():
+    try:
+        import bpy
+    except ImportError:
+        raise InputError("rendering needs Blender as a Python module: pip install bpy "
+                         "(or the [render] extra)") from None
+    return bpy
+
+
+@dataclass(frozen=True)
+class RenderSettings:
+    """How to render. ``threads`` 0 = all cores (still a fixed count: bytes do not depend on timing)."""
+
+    width: int = 400
+    height: int = 400
+    engine: str = "cycles"
+    samples: int = 4
+    png_samples: int = 16
+    threads: int = 0
+    max_bounces: int = 4
+
+    def thread_count(self) -> int:
+        return self.threads or (os.cpu_count() or 1)
+
+
+# ----------------------------------------------------------------------------- scene building
+def reset_blender() -> None:
+    """An empty Blender session (factory settings, no objects)."""
+    _bpy().ops.wm.read_factory_settings(use_empty=True)
+
+
+def build_bpy_scene(desc):
+    """Replace the session's contents by ``desc``; return ``(scene, camera object)``."""
+    bpy = _bpy()
+    reset_blender()
+    scene = bpy.context.scene
+    materials = {name: _make_material(m) for name, m in desc.materials.items()}
+    for mesh in desc.meshes:
+        _make_object(scene, mesh, materials[mesh.material])
+    for i, light in enumerate(desc.lights):
+        _make_light(scene, light, f"light_{i}")
+    set_world(scene, desc.world_color, desc.world_strength)
+    camera = ensure_camera(scene)
+    set_camera_angle(camera, CAMERA_ANGLE_X)
+    return scene, camera
+
+
+def _make_object(scene, mesh, material):
+    """A Blender mesh object from ``vertices [N, 3]`` and ``faces [M, 3]``."""
+    bpy = _bpy()
+    data = bpy.data.meshes.new(mesh.name)
+    v = np.ascontiguousarray(mesh.vertices, dtype=np.float32)
+    f = np.ascontiguousarray(mesh.faces, dtype=np.int32)
+    data.vertices.add(len(v))
+    data.vertices.foreach_set("co", v.ravel())
+    data.loops.add(f.size)
+    data.loops.foreach_set("vertex_index", f.ravel())
+    data.polygons.add(len(f))
+    data.polygons.foreach_set("loop_start", np.arange(0, f.size, 3, dtype=np.int32))
+    data.update(calc_edges=True)
+    data.validate()
+    if mesh.smooth:
+        data.shade_smooth()
+    data.materials.append(material)
+    obj = bpy.data.objects.new(mesh.name, data)
+    scene.collection.objects.link(obj)
+    return obj
+
+
+def _make_material(m):
+    """A Principled BSDF material (optionally box-projected image texture as base colour)."""
+    bpy = _bpy()
+    mat = bpy.data.materials.new(m.name)
+    if not mat.node_tree:  # Blender < 5 needs use_nodes; 5.x materials always have nodes
+        mat.use_nodes = True
+    bsdf = next(n for n in mat.node_tree.nodes if n.bl_idname == "ShaderNodeBsdfPrincipled")
+    bsdf.inputs["Base Color"].default_value = (*m.base_color, 1.0)
+    bsdf.inputs["Roughness"].default_value = m.roughness
+    bsdf.inputs["Metallic"].default_value = m.metallic
+    bsdf.inputs["Transmission Weight"].default_value = m.transmission
+    bsdf.inputs["IOR"].default_value = m.ior
+    bsdf.inputs["Specular IOR Level"].default_value = m.specular
+    mat.diffuse_color = (*m.base_color, 1.0)  # what Workbench shows
+    if m.texture is not None:
+        _add_texture(mat, bsdf, m)
+    return mat
+
+
+def _add_texture(mat, bsdf, m):
+    bpy = _bpy()
+    tex = np.asarray(m.texture, dtype=np.float32)
+    h, w = tex.shape[:2]
+    img = bpy.data.images.new(m.name + "_texture", w, h, alpha=True, float_buffer=True)
+    rgba = np.concatenate([tex, np.ones((h, w, 1), np.float32)], axis=2)[::-1]  # Blender rows bottom-up
+    img.pixels.foreach_set(np.ascontiguousarray(rgba).ravel())
+    img.pack()
+    nodes, links = mat.node_tree.nodes, mat.node_tree.links
+    coord, mapping = nodes.new("ShaderNodeTexCoord"), nodes.new("ShaderNodeMapping")
+    node = nodes.new("ShaderNodeTexImage")
+    node.image, node.projection, node.projection_blend, node.interpolation = img, "BOX", 0.2, "Linear"
+    mapping.inputs["Scale"].default_value = (m.texture_scale,) * 3
+    links.new(coord.outputs["Object"], mapping.inputs["Vector"])
+    links.new(mapping.outputs["Vector"], node.inputs["Vector"])
+    links.new(node.outputs["Color"], bsdf.inputs["Base Color"])
+
+
+def _make_light(scene, light, name):
+    bpy = _bpy()
+    from mathutils import Vector
+
+    data = bpy.data.lights.new(name, light.kind)
+    data.energy = light.strength
+    data.color = light.color
+    if light.kind in ("AREA",):
+        data.size = light.size
+    elif light.kind == "POINT":
+        data.shadow_soft_size = light.size
+    obj = bpy.data.objects.new(name, data)
+    obj.location = light.location
+    obj.rotation_mode = "QUATERNION"
+    obj.rotation_quaternion = Vector(light.direction).to_track_quat("-Z", "Y")
+    scene.collection.objects.link(obj)
+    return obj
+
+
+def set_world(scene, color, strength: float) -> None:
+    """A uniform world of ``color`` (linear RGB) x ``strength``."""
+    bpy = _bpy()
+    world = scene.world or bpy.data.worlds.new("World")
+    scene.world = world
+    if not world.node_tree:
+        world.use_nodes = True
+    bg = next(n for n in world.node_tree.nodes if n.bl_idname == "ShaderNodeBackground")
+    bg.inputs["Color"].default_value = (*color, 1.0)
+    bg.inputs["Strength"].default_value = strength
+    world.color = color
+
+
+def ensure_camera(scene):
+    """The scene's active camera, creating one if there is none."""
+    bpy = _bpy()
+    if scene.camera is None:
+        cam = bpy.data.objects.new("Camera", bpy.data.cameras.new("Camera"))
+        scene.collection.objects.link(cam)
+        scene.camera = cam
+    return scene.camera
+
+
+def set_camera_angle(camera, angle_x: float) -> None:
+    """Horizontal field of view ``angle_x`` (radians), fitted to the image width."""
+    camera.data.sensor_fit = "HORIZONTAL"
+    camera.data.sensor_width = 36.0
+    camera.data.lens = 18.0 / math.tan(angle_x / 2)
+    camera.data.shift_x = camera.data.shift_y = 0.0
+
+
+def camera_angle_x(camera, width: int, height: int) -> float:
+    """The camera's horizontal field of view (radians) for a ``width`` x ``height`` image."""
+    data = camera.data
+    fit = data.sensor_fit
+    if fit == "VERTICAL" or (fit == "AUTO" and height > width):
+        sensor = data.sensor_height if fit == "VERTICAL" else data.sensor_width
+        angle_y = 2 * math.atan(sensor / 2 / data.lens)
+        return 2 * math.atan(math.tan(angle_y / 2) * width / height)
+    return 2 * math.atan(data.sensor_width / 2 / data.lens)
+
+
+def open_blend(path):
+    """Open a user's ``.blend``; return ``(scene, camera object)`` (a camera is added if missing)."""
+    bpy = _bpy()
+    p = Path(path)
+    if not p.is_file():
+        raise InputError(f"{path}: no such .blend file")
+    try:
+        bpy.ops.wm.open_mainfile(filepath=str(p.resolve()), load_ui=False)
+    except RuntimeError as exc:
+        raise InputError(f"{path}: Blender cannot open it ({str(exc).splitlines()[0]})") from None
+    scene = bpy.context.scene
+    return scene, ensure_camera(scene)
+
+
+# ----------------------------------------------------------------------------- rendering
+def configure(scene, settings: RenderSettings) -> None:
+    """Engine, resolution, sampling, threads, film and colour management (see module doc)."""
+    r = scene.render
+    r.engine = ENGINES[settings.engine]
+    r.resolution_x, r.resolution_y, r.resolution_percentage = settings.width, settings.height, 100
+    r.pixel_aspect_x = r.pixel_aspect_y = 1.0
+    r.film_transparent = True
+    r.use_persistent_data = True
+    r.threads_mode, r.threads = "FIXED", settings.thread_count()
+    r.dither_intensity = 0.0
+    r.use_compositing = r.use_sequencer = False
+    r.use_file_extension = False
+    r.use_motion_blur = False
+    for name in dir(r):  # no date, render time, host... in the files: bytes must not depend on the run
+        if name.startswith("use_stamp"):
+            setattr(r, name, False)
+    scene.view_settings.view_transform = "Standard"
+    scene.view_settings.look = "None"
+    scene.view_settings.exposure, scene.view_settings.gamma = 0.0, 1.0
+    scene.display_settings.display_device = "sRGB"
+    if settings.engine == "cycles":
+        _configure_cycles(scene, settings)
+    else:
+        _configure_workbench(scene)
+
+
+def _configure_cycles(scene, settings: RenderSettings) -> None:
+    c = scene.cycles
+    c.device = "CPU"
+    c.samples = settings.samples
+    c.use_adaptive_sampling = False
+    c.use_denoising = False
+    c.use_animated_seed = False
+    c.use_auto_tile = False
+    c.max_bounces = settings.max_bounces
+    c.diffuse_bounces, c.glossy_bounces = 2, 3
+    c.transmission_bounces, c.transparent_max_bounces = settings.max_bounces + 2, 8
+    c.caustics_reflective = c.caustics_refractive = False
+    c.use_guiding = False
+    c.pixel_filter_type, c.filter_width = "BLACKMAN_HARRIS", 1.5
+    c.sample_clamp_indirect = 10.0
+
+
+def _configure_workbench(scene) -> None:
+    shading = scene.display.shading
+    shading.light, shading.color_type = "STUDIO", "MATERIAL"
+    scene.display.render_aa = "8"
+
+
+class BlenderRenderer:
+    """Renders poses of ``camera`` in ``scene`` to files; the scene is configured once."""
+
+    def __init__(self, scene, camera, settings: RenderSettings, quiet: bool = True):
+        self.scene, self.camera, self.settings, self.quiet = scene, camera, settings, quiet
+        scene.camera = camera
+        configure(scene, settings)
+
+    def camera_angle_x(self) -> float:
+        return camera_angle_x(self.camera, self.settings.width, self.settings.height)
+
+    def set_view_seed(self, seed: int) -> None:
+        """The Cycles seed used for every render until the next call (one per view)."""
+        if self.settings.engine == "cycles":
+            self.scene.cycles.seed = int(seed)
+
+    def set_pose(self, pose: np.ndarray) -> None:
+        """Camera-to-world ``pose [4, 4]`` (Blender/NeRF axes)."""
+        from mathutils import Matrix
+
+        self.camera.matrix_world = Matrix(np.asarray(pose, dtype=np.float64).tolist())
+        _bpy().context.view_layer.update()
+
+    def camera_matrix(self) -> np.ndarray:
+        """The camera's current camera-to-world ``[4, 4]`` as Blender holds it."""
+        return np.array(self.camera.matrix_world, dtype=np.float64)
+
+    def render_exr(self, pose: np.ndarray, path) -> None:
+        """Linear RGBA float32 OpenEXR of ``pose`` (premultiplied alpha, transparent film)."""
+        self.set_pose(pose)
+        fmt = self.scene.render.image_settings
+        fmt.file_format, fmt.color_mode, fmt.color_depth, fmt.exr_codec = "OPEN_EXR", "RGBA", "32", "ZIP"
+        self._render_to(path, self.settings.samples, _rewrite_exr)
+
+    def render_png(self, pose: np.ndarray, path) -> None:
+        """8-bit sRGB RGBA PNG of ``pose`` (straight alpha, transparent film), as NeRF-synthetic."""
+        self.set_pose(pose)
+        fmt = self.scene.render.image_settings
+        fmt.file_format, fmt.color_mode, fmt.color_depth, fmt.compression = "PNG", "RGBA", "8", 15
+        self._render_to(path, max(self.settings.png_samples, self.settings.samples), _rewrite_png)
+
+    def _render_to(self, path, samples: int, rewrite) -> None:
+        bpy = _bpy()
+        if self.settings.engine == "cycles":
+            self.scene.cycles.samples = samples
+        with atomic_path(path) as tmp:
+            with quiet_stdout(self.quiet):
+                self.scene.render.filepath = str(tmp)
+                bpy.ops.render.render(write_still=True, scene=self.scene.name)
+            rewrite(tmp)
+
+
+def _rewrite_exr(path) -> None:
+    """Re-encode Blender's EXR (float32 RGBA, ZIP) without its metadata: Cycles stamps render
+    times into every file, which would make identical renders differ in bytes."""
+    from .spikeio import read_exr, write_exr
+
+    write_exr(path, read_exr(path))
+
+
+def _rewrite_png(path) -> None:
+    """Re-encode Blender's PNG (8-bit RGBA) without its metadata (render times)."""
+    from PIL import Image
+
+    from .spikeio import write_png
+
+    with Image.open(path) as im:
+        arr = np.asarray(im.convert("RGBA"))
+    write_png(path, arr)
+
+
+@contextlib.contextmanager
+def quiet_stdout(enabled: bool = True):
+    """Silence Blender's per-render log lines (written by C code straight to file descriptor 1)."""
+    if not enabled:
+        yield
+        return
+    sys.stdout.flush()
+    saved = os.dup(1)
+    devnull = os.open(os.devnull, os.O_WRONLY)
+    try:
+        os.dup2(devnull, 1)
+        yield
+    finally:
+        os.dup2(saved, 1)
+        os.close(saved)
+        os.close(devnull)
+
+
+def renderer_for(job, blend=None, quiet: bool = True) -> "BlenderRenderer":
+    """A renderer for ``job``: the built-in scene ``job.scene``, or the user's ``blend`` file."""
+    from .scenes import build_scene
+
+    if blend is not None:
+        scene, camera = open_blend(blend)
+    else:
+        scene, camera = build_bpy_scene(build_scene(job.scene))
+    settings = RenderSettings(job.width, job.height, job.engine, job.samples, job.png_samples)
+    return BlenderRenderer(scene, camera, settings, quiet=quiet)
