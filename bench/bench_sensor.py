@@ -28,8 +28,7 @@ def yardstick(x: np.ndarray, intensity: float, resp, dark, frames: int, phase, e
               rng: np.random.Generator | None = None) -> np.ndarray:
     """Plain loop over frames. ``x [K, H, W]`` -> ``uint8 [T, H, W]``."""
     K, H, W = x.shape
-    lam_k = resp * (intensity / 256.0 * x.astype(np.float64) + dark)
-    sched = ChargeSchedule(lam_k.reshape(K, -1), frames)
+    sched = ChargeSchedule.from_radiance(x.reshape(K, -1), intensity, resp.reshape(-1), dark.reshape(-1), frames)
     acc = phase.reshape(-1).astype(np.float64) / ONE
     out = np.zeros((frames, H * W), dtype=np.uint8)
     for t in range(frames):

@@ -35,7 +35,7 @@ def test_fast_path_is_bit_identical_to_a_frame_loop():
     ss = np.random.SeedSequence(11)
     fast = simulate(x, 64, sensor, seed=ss)
     R, d = sensor.maps(*x.shape[1:])
-    sched = ChargeSchedule((R * (0.25 * x.astype(np.float64) + d)).reshape(16, -1), 256)
+    sched = ChargeSchedule.from_radiance(x.reshape(16, -1), 64, R.reshape(-1), d.reshape(-1), 256)
     ref = loop_readout(sched.dense_int64(), start_phase(ss, *x.shape[1:]).reshape(-1))
     np.testing.assert_array_equal(fast, ref.reshape(fast.shape))
 

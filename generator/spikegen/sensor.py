@@ -188,9 +188,24 @@ class ChargeSchedule:
 
     def __init__(self, lam: np.ndarray, frames: int):
         lam = np.asarray(lam, dtype=np.float64)
-        K, P = lam.shape
+        self._build(lam * float(ONE), frames)
+
+    @classmethod
+    def from_radiance(cls, x: np.ndarray, intensity: float, resp: np.ndarray, dark: np.ndarray,
+                      frames: int) -> "ChargeSchedule":
+        """Schedule of ``lambda = R ((I / 256) X + d)`` for sub-frames ``x [K, P]`` and maps
+        ``resp``, ``dark`` ``[P]``: the definition used by every path of the simulator."""
+        gain = resp * (float(intensity) / 256.0 * ONE)  # [P], charge units per unit radiance
+        offset = resp * dark * float(ONE)  # [P]
+        scaled = np.multiply(x, gain, dtype=np.float64)
+        scaled += offset
+        self = cls.__new__(cls)
+        self._build(scaled, frames)
+        return self
+
+    def _build(self, scaled: np.ndarray, frames: int) -> None:
+        K, P = scaled.shape
         self.frames, self.pixels, self.subframes = frames, P, K
-        scaled = lam * float(ONE)
         np.minimum(scaled, 2.0 * ONE, out=scaled)
         self.levels = np.rint(scaled, out=scaled).astype(np.int64)  # [K, P]
         self.saturating = self.levels.max(axis=0) >= ONE  # [P]
@@ -313,7 +328,7 @@ def start_phase(seed, height: int, width: int) -> np.ndarray:
 
 
 def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: int = 256, seed=0,
-             phase: np.ndarray | None = None, progress=None) -> np.ndarray:
+             phase: np.ndarray | None = None, progress=None, threads: int = 1) -> np.ndarray:
     """Spike stream of one view.
 
     radiance: linear luminance, ``[K, H, W]`` sub-frames or ``[H, W]`` (static, K = 1).
@@ -322,6 +337,7 @@ def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: i
     frames: T. seed: int or SeedSequence (see :mod:`spikegen.seeding`).
     phase: optional start charge ``uint32 [H, W]`` (overrides the seeded one).
     progress: optional callable(rows_done, rows_total).
+    threads: row blocks integrated in parallel threads (the result does not depend on it).
     Returns ``uint8 [T, H, W]`` of 0/1.
     """
     x = np.asarray(radiance)
@@ -347,15 +363,34 @@ def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: i
     out = np.empty((frames, H, W), dtype=np.uint8)
     fast = sensor.kind == "if" and not sensor.radiance_effects and sensor.simple_readout
     step = max(CHUNK_ROWS, (FAST_CHUNK_PIXELS // W) // CHUNK_ROWS * CHUNK_ROWS) if fast else CHUNK_ROWS
-    for r0 in range(0, H, step):
+    threads = max(1, int(threads))
+    if threads > 1:  # at least one chunk per thread
+        step = min(step, max(CHUNK_ROWS, -(-H // (threads * CHUNK_ROWS)) * CHUNK_ROWS))
+    run = _fast_rows if fast else _dense_rows
+
+    def chunk(r0):
         r1 = min(H, r0 + step)
         rngs = [np.random.Generator(np.random.PCG64(_child(ss, 1 + b)))
                 for b in range(r0 // CHUNK_ROWS, (r1 + CHUNK_ROWS - 1) // CHUNK_ROWS)]
-        flat = out.reshape(frames, H * W)[:, r0 * W: r1 * W]
-        args = (x, r0, r1, float(intensity), sensor, resp, dark, phase, frames, rngs, flat)
-        (_fast_rows if fast else _dense_rows)(*args)
-        if progress is not None:
-            progress(r1, H)
+        run(x, r0, r1, float(intensity), sensor, resp, dark, phase, frames, rngs,
+            out.reshape(frames, H * W)[:, r0 * W: r1 * W])
+        return r1
+
+    starts = range(0, H, step)
+    if threads == 1:
+        done = map(chunk, starts)
+    else:  # NumPy releases the GIL inside its loops; chunks write disjoint outputs
+        from concurrent.futures import ThreadPoolExecutor
+
+        pool = ThreadPoolExecutor(max_workers=threads)
+        done = pool.map(chunk, starts)
+    try:
+        for r1 in done:
+            if progress is not None:
+                progress(r1, H)
+    finally:
+        if threads > 1:
+            pool.shutdown()
     return out
 
 
@@ -374,7 +409,7 @@ def _fast_rows(x, r0, r1, intensity, sensor, resp, dark, phase, T, rngs, out):
     K, H, W = x.shape
     P = (r1 - r0) * W
     R, d, a0 = resp[r0:r1].reshape(P), dark[r0:r1].reshape(P), phase[r0:r1].reshape(P)
-    sched = ChargeSchedule(R * (intensity / 256.0 * x[:, r0:r1].reshape(K, P).astype(np.float64) + d), T)
+    sched = ChargeSchedule.from_radiance(x[:, r0:r1].reshape(K, P), intensity, R, d, T)
     if sensor.electrons == 0:
         fused_carry(sched, a0, out)
         slow = np.flatnonzero(sched.saturating)
@@ -402,8 +437,7 @@ def _dense_rows(x, r0, r1, intensity, sensor, resp, dark, phase, T, rngs, out):
     R, d, a0 = resp[r0:r1].reshape(P), dark[r0:r1].reshape(P), phase[r0:r1].reshape(P)
     rng = rngs[0]
     if sensor.kind == "if" and not sensor.radiance_effects:
-        charge = ChargeSchedule(R * (intensity / 256.0 * x[:, r0:r1].reshape(K, P).astype(np.float64) + d),
-                                T).dense_int64()
+        charge = ChargeSchedule.from_radiance(x[:, r0:r1].reshape(K, P), intensity, R, d, T).dense_int64()
     else:
         xt = _frame_radiance(x, r0, r1, T, sensor)  # [T, P] after radiance effects
         if sensor.kind == "rsir":
