@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import shutil
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -240,7 +241,8 @@ def convert_view(task: dict) -> str:
         return "skipped"
     x, gt = _load_view(task["kind"], view, task["resolution"])
     seed = view_seed(task["seed"], task["name"], view.split, view.index, task["intensity"])
-    spikes = simulate(x, task["intensity"], task["sensor"], frames=task["frames"], seed=seed)
+    spikes = simulate(x, task["intensity"], task["sensor"], frames=task["frames"], seed=seed,
+                      threads=task.get("threads", 1))
     if gt is None:
         with atomic_path(png) as tmp:
             shutil.copyfile(view.png, tmp)
@@ -307,7 +309,8 @@ def _convert_level(src, out_dir, level, sensor_name, sensor_obj, frames, seed, r
     _claim(out, params)
     tasks = [{"out": out, "view": v, "kind": src.kind, "resolution": resolution, "seed": int(seed),
               "name": src.name, "intensity": level, "frames": int(frames),
-              "dat_bytes": int(frames) * width * height // 8} for v in src.views]
+              "dat_bytes": int(frames) * width * height // 8,
+              "threads": (os.cpu_count() or 1) if workers == 1 and client is None else 1} for v in src.views]
     run_tasks(convert_view, tasks, workers=workers, scheduler=client, progress=progress,
               desc=f"{out.name}", shared={"sensor": sensor_obj})
     _finish(out, src, params, sensor_obj)
@@ -371,6 +374,8 @@ def verify(folder) -> list[str]:
         raise InputError(f"{mpath}: no 'files' list")
     problems, listed = [], set()
     for e in entries:
+        if isinstance(e, dict) and isinstance(e.get("path"), str):
+            listed.add(e["path"])  # a malformed entry still names its file: not "unlisted" too
         try:
             rel, size, digest = e["path"], int(e["bytes"]), e["sha256"]
         except (KeyError, TypeError, ValueError):
