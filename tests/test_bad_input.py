@@ -333,6 +333,61 @@ def out_holds_foreign_files(w):
     return conv(w / "src", w / "out"), NAME
 
 
+# --- render (checked before Blender is started or anything is written)
+def rend(w, *extra):
+    return ["render", "--intensity", "32", "--out", w / "out", *extra]
+
+
+@case
+def render_unknown_scene(w):
+    return rend(w, "--scene", "teapot"), "teapot"
+
+
+@case
+def render_no_scene(w):
+    return rend(w), "--scene"
+
+
+@case
+def render_scene_and_blend(w):
+    return rend(w, "--scene", "lego", "--blend", w / "x.blend"), "--blend"
+
+
+@case
+def render_blend_missing(w):
+    return rend(w, "--blend", w / "missing.blend"), "missing.blend"
+
+
+@case
+def render_views_malformed(w):
+    return rend(w, "--scene", "lego", "--views", "10,10"), "--views"
+
+
+@case
+def render_views_all_zero(w):
+    return rend(w, "--scene", "lego", "--views", "0,0,0"), "--views"
+
+
+@case
+def render_subframes_zero(w):
+    return rend(w, "--scene", "lego", "--subframes", "0"), "--subframes"
+
+
+@case
+def render_resolution_too_small(w):
+    return rend(w, "--scene", "lego", "--resolution", "4"), "--resolution"
+
+
+@case
+def render_samples_zero(w):
+    return rend(w, "--scene", "lego", "--samples", "0"), "--samples"
+
+
+@case
+def render_intensity_absurd(w):
+    return ["render", "--scene", "lego", "--intensity", "1e12", "--out", w / "out"], "--intensity"
+
+
 # --- verify
 @case
 def verify_missing_folder(w):
@@ -533,6 +588,18 @@ def test_bad_input_real_process(name, work):
     before = snapshot(work)
     proc = run_spikegen(*argv, timeout=60)
     check_one_line(proc.returncode, proc.stderr, needle)
+    assert snapshot(work) == before
+
+
+@pytest.mark.blender
+def test_render_blend_not_a_blend_file(work):
+    """A --blend that Blender cannot open (needs bpy; Blender may print its own note on stdout)."""
+    pytest.importorskip("bpy")
+    (work / "notes.blend").write_text("not a blend file")
+    before = snapshot(work)
+    proc = run_spikegen("render", "--blend", work / "notes.blend", "--intensity", "32", "--out", work / "out",
+                        timeout=120)
+    check_one_line(proc.returncode, proc.stderr, "notes.blend")
     assert snapshot(work) == before
 
 

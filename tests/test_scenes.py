@@ -76,3 +76,26 @@ def test_what_makes_each_scene_hard_is_there(scenes):
     assert tex is not None and tex.ndim == 3 and tex.std() > 0.1  # a real pattern, not a flat colour
     hotdog = scenes["hotdog"]
     assert {"bun", "sausage", "plate", "mustard"} <= set(hotdog.materials)
+
+
+def test_original_blend_files_are_recognised_by_sha256(tmp_path, monkeypatch):
+    from spikegen import scenes
+    from spikegen.render import identify_blend
+    from spikegen.spikeio import sha256_file
+
+    f = tmp_path / "some_copy.blend"
+    f.write_bytes(b"BLENDER-v500 not really")
+    assert identify_blend(f)[0] == "some_copy"  # unknown file: its own name
+    monkeypatch.setitem(scenes.ORIGINAL_BLEND_SHA256, sha256_file(f), "ficus")
+    assert identify_blend(f) == ("ficus", sha256_file(f))
+    with pytest.raises(InputError, match="no such file"):
+        identify_blend(tmp_path / "missing.blend")
+
+
+def test_scene_and_render_orchestration_never_import_bpy():
+    import subprocess
+    import sys
+
+    code = ("import sys, spikegen.scenes, spikegen.camera, spikegen.render, spikegen.cli_render; "
+            "spikegen.scenes.build_scene('lego'); assert 'bpy' not in sys.modules, 'bpy imported'")
+    subprocess.run([sys.executable, "-c", code], check=True)

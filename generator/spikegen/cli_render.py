@@ -19,8 +19,10 @@ from .scenes import SCENES
               help="Spikes per 256 frames at X = 1 (repeatable: 16, 32, 64 in the paper).")
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), default=Path("out"), show_default=True,
               help="Folder receiving <scene>_render/ and <scene>_i<I>/.")
-@click.option("--resolution", type=int, default=None, help="Image width and height [default: 400; 64 with --quick].")
-@click.option("--views", default=None, help="train,val,test view counts [default: 100,100,200; 4,2,4 with --quick].")
+@click.option("--resolution", type=int, default=None,
+              help="Image width and height [default: 400; 100 with --quick].")
+@click.option("--views", default=None,
+              help="train,val,test view counts [default: 100,100,200; 20,4,8 with --quick].")
 @click.option("--subframes", type=int, default=16, show_default=True, help="Sub-frames K rendered per view.")
 @click.option("--frames", type=int, default=256, show_default=True, help="Readout frames T per view.")
 @click.option("--motion", "motion_deg", type=float, default=DEFAULT_MOTION_DEG, show_default=True,
@@ -37,7 +39,7 @@ from .scenes import SCENES
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of cameras, render noise and spikes.")
 @click.option("--workers", type=int, default=1, show_default=True, help="Local worker processes for conversion.")
 @click.option("--scheduler", default=None, help="Dask scheduler address for conversion.")
-@click.option("--quick", is_flag=True, help="Small and fast: 64 x 64, views 4,2,4 (unless given).")
+@click.option("--quick", is_flag=True, help="Small and fast: 100 x 100, views 20,4,8 (unless given).")
 def render(scene, intensities, out_dir, resolution, views, subframes, frames, motion_deg, samples, png_samples,
            engine, blend, sensor, seed, workers, scheduler, quick):
     """Render a scene through Blender and write <out>/<scene>_i<I>/ for each intensity."""

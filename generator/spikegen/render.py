@@ -29,7 +29,7 @@ from .errors import InputError, OutputError
 from .spikeio import sha256_file, write_json_atomic
 
 RENDER_FORMAT = "spikegen-render/1"
-QUICK = {"resolution": 64, "views": (4, 2, 4)}  # --quick: a small dataset in well under 5 minutes
+QUICK = {"resolution": 100, "views": (20, 4, 8)}  # --quick: a small dataset in well under 5 minutes
 HEADER_KEYS = ("format", "scene", "camera_angle_x", "width", "height", "subframes", "frames", "motion_deg",
                "engine", "samples", "png_samples", "seed", "views", "source")
 

@@ -2,7 +2,9 @@
 
 One grid ``[1, 1 + C, G, G, G]`` holds raw density (channel 0) and C features; a point's
 values are read by trilinear interpolation (``grid_sample``). Luminance (the sensor is
-monochrome) comes from a small MLP of the features and the viewing direction. The grid is
+monochrome) comes from a small MLP of the features and the viewing direction, or, with
+``features=0`` (the default: several times faster on a CPU), directly from one grid channel
+(view-independent luminance, ``sigmoid`` of channel 1). The grid is
 upsampled during training (coarse to fine); an occupancy mask of the grid lets the renderer
 skip empty space. The constructor arguments are stored in checkpoints (:meth:`config`).
 """
@@ -26,17 +28,18 @@ class GridField(nn.Module):
     ``query(points [M, 3], dirs [M, 3]) -> (sigma [M] per reference voxel, x [M] in [0, 1])``.
     """
 
-    def __init__(self, grid_size: int = 32, final_size: int = 128, features: int = 12, hidden: int = 48,
+    def __init__(self, grid_size: int = 32, final_size: int = 128, features: int = 0, hidden: int = 48,
                  bound: float = 1.5, alpha_init: float = 1e-4, step_ratio: float = 0.5):
         super().__init__()
         self.args = dict(grid_size=grid_size, final_size=final_size, features=features, hidden=hidden,
                          bound=bound, alpha_init=alpha_init, step_ratio=step_ratio)
         self.bound, self.final_size, self.step_ratio = bound, final_size, step_ratio
         self.shift = _shift_for(alpha_init, step_ratio)
-        self.grid = nn.Parameter(torch.zeros(1, 1 + features, grid_size, grid_size, grid_size))
+        self.grid = nn.Parameter(torch.zeros(1, 1 + max(1, features), grid_size, grid_size, grid_size))
         self.mlp = nn.Sequential(nn.Linear(features + 9, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
-                                 nn.Linear(hidden, 1))
+                                 nn.Linear(hidden, 1)) if features else nn.Sequential()
         self.register_buffer("occupancy", torch.ones(grid_size, grid_size, grid_size, dtype=torch.bool))
+        self.register_buffer("box", torch.tensor([[-bound] * 3, [bound] * 3]))  # occupied box [2, 3], world
 
     def config(self) -> dict:
         return dict(self.args, grid_size=self.grid_size)
@@ -67,6 +70,8 @@ class GridField(nn.Module):
     def query(self, points: torch.Tensor, dirs: torch.Tensor):
         vals = self.sample_grid(points)
         sigma = F.softplus(vals[:, 0] + self.shift)
+        if not len(self.mlp):
+            return sigma, torch.sigmoid(vals[:, 1])
         pe = torch.cat([dirs, torch.sin(2 * dirs), torch.cos(2 * dirs)], dim=-1)
         x = torch.sigmoid(self.mlp(torch.cat([vals[:, 1:], pe], dim=-1)).squeeze(-1))
         return sigma, x
@@ -84,7 +89,18 @@ class GridField(nn.Module):
         alpha = 1 - torch.exp(-sigma * self.step_ratio * self.voxel / self.ref_voxel)
         dil = F.max_pool3d(alpha[None, None], kernel_size=3, stride=1, padding=1)[0, 0]
         self.occupancy = dil > threshold
+        self._update_box()
         return float(self.occupancy.float().mean())
+
+    def _update_box(self) -> None:
+        """The smallest box holding every occupied grid point, padded by one voxel."""
+        idx = self.occupancy.nonzero()
+        if idx.numel() == 0:
+            self.box = torch.zeros_like(self.box)
+            return
+        lo = (idx.amin(dim=0).float() - 1) * self.voxel - self.bound
+        hi = (idx.amax(dim=0).float() + 1) * self.voxel - self.bound
+        self.box = torch.stack([lo, hi]).clamp(-self.bound, self.bound).to(self.box)
 
     @torch.no_grad()
     def upsample(self, size: int) -> None:
@@ -93,6 +109,7 @@ class GridField(nn.Module):
         self.grid = nn.Parameter(new)
         occ = F.interpolate(self.occupancy[None, None].float(), size=(size,) * 3, mode="nearest")[0, 0]
         self.occupancy = occ > 0
+        self._update_box()
 
     def tv_loss(self, generator: torch.Generator | None = None, block: int = 24) -> torch.Tensor:
         """Total variation (squared differences) on a random ``block^3`` sub-grid: a smoothness prior."""

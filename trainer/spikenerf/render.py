@@ -23,11 +23,11 @@ def pixel_rays(poses: torch.Tensor, pix: torch.Tensor, height: int, width: int, 
     return poses[:, :3, 3], d / d.norm(dim=-1, keepdim=True)
 
 
-def box_interval(origins: torch.Tensor, dirs: torch.Tensor, bound: float, near: float = 0.05):
-    """Entry and exit distances ``[n]`` of rays through ``[-bound, bound]^3`` (exit <= entry: miss)."""
+def box_interval(origins: torch.Tensor, dirs: torch.Tensor, box: torch.Tensor, near: float = 0.05):
+    """Entry and exit distances ``[n]`` of rays through the box ``[2, 3]`` (lo, hi) (exit <= entry: miss)."""
     inv = 1.0 / torch.where(dirs.abs() < 1e-9, torch.full_like(dirs, 1e-9), dirs)
-    t0 = (-bound - origins) * inv
-    t1 = (bound - origins) * inv
+    t0 = (box[0] - origins) * inv
+    t1 = (box[1] - origins) * inv
     t_in = torch.minimum(t0, t1).amax(dim=-1).clamp(min=near)
     t_out = torch.maximum(t0, t1).amin(dim=-1)
     return t_in, t_out
@@ -42,9 +42,10 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.
     """
     n = origins.shape[0]
     step = field.step_ratio * field.voxel
-    t_in, t_out = box_interval(origins, dirs, field.bound)
+    t_in, t_out = box_interval(origins, dirs, field.box)
     span = (t_out - t_in).clamp(min=0)
     n_samp = max(1, int(torch.ceil(span.max() / step).item()))
+    # (a sample grid that starts at each ray's entry; 'valid' marks samples inside the box)
     off = torch.full((n,), 0.5, device=origins.device) if jitter is None else jitter
     t = t_in[:, None] + step * (torch.arange(n_samp, device=origins.device)[None, :] + off[:, None])  # [n, S]
     pts = origins[:, None, :] + t[..., None] * dirs[:, None, :]

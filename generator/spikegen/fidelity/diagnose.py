@@ -50,6 +50,8 @@ SIM_SEED = 20240617  # seed of the diagnosis' own simulations (the measured stre
 GAMMA_RANGE = (0.25, 4.0)
 DELTA_MAX = 6.0
 MIN_SPIKES = 3
+MIN_COHERENCE = 0.9  # flicker: agreement of the sinusoid across four pixel groups (1 = identical)
+QUANTISED_MIN_ISI = 8.0  # noise-free reset-to-zero: intervals shorter than this say too little
 
 # name: (size gate = half the envelope's weakest effect, z gate)
 GATES = {
@@ -208,6 +210,8 @@ def _fit_all(ctx: _Context) -> dict:
     Rb, db = ctx.baseline.maps(H, W)
     model = {"a": 1.0, "gamma": 1.0, "c": 0.0, "d": 0.0, "delta": 0.0, "fbar": 1.0, "flicker": None,
              "Rb": Rb.reshape(-1), "db": db.reshape(-1), "outlier": np.zeros(H * W, dtype=bool)}
+    model["constant_fraction"] = _constant_interval_fraction(ctx.meas)
+    model["zero_quantised"] = model["constant_fraction"] > 0.5
     model["flicker"] = _fit_flicker(ctx, model)
     if not ctx.self_ref:
         _fit_rate_model(ctx, model)
@@ -216,8 +220,6 @@ def _fit_all(ctx: _Context) -> dict:
         _fit_rate_model(ctx, model)
     else:
         model["delta"] = _self_refractory(ctx)
-    model["constant_fraction"] = _constant_interval_fraction(ctx.meas)
-    model["zero_quantised"] = model["constant_fraction"] > 0.5
     _pixel_structure(ctx, model)
     return model
 
@@ -250,11 +252,15 @@ def _lam_obs(isi, delta):
         return 1.0 / (isi - delta)
 
 
-def _solve(A, isi, delta, sqrt_w, keep, want_cov=False):
-    """Weighted LSQ of ``lambda_obs = 1 / (ISI - delta)`` on the design ``A [P, p]``, relative
-    errors weighted by ``w``; returns (theta, cov or None, lam_pred [P]) or None."""
-    x = isi - delta
-    ok = keep & (x >= 1.05)
+def _solve(A, isi, delta, sqrt_w, keep, want_cov=False, target=None):
+    """Weighted LSQ of ``lambda_obs = 1 / (ISI - delta)`` (or of ``target``) on the design
+    ``A [P, p]``, relative errors weighted by ``w``; returns (theta, cov or None, lam_pred [P])."""
+    if target is None:
+        x = isi - delta
+        ok = keep & (x >= 1.05)
+    else:
+        x = 1.0 / np.maximum(target, 1e-12)
+        ok = keep & (target < 0.95)
     if ok.sum() < A.shape[1] + 5:
         return None
     sw = sqrt_w[ok] * x[ok]  # sqrt(w) / lambda_obs
@@ -271,6 +277,25 @@ def _solve(A, isi, delta, sqrt_w, keep, want_cov=False):
         s2 = float(res @ res) / max(ok.sum() - A.shape[1], 1)
         cov = np.linalg.inv(M) * s2
     return theta, cov, A @ theta
+
+
+def _solve_censored(A, isi, delta, sqrt_w, keep, want_cov=False):
+    """Noise-free reset-to-zero: ``ISI = n + ceil(1 / lambda)``, so ``1 / lambda`` lies in
+    ``(ISI - n - 1, ISI - n]`` (``delta = n + 1/2``). Alternate: fit, project the prediction
+    into each pixel's interval, refit. Returns (solution, mean squared relative distance)."""
+    lo, hi = np.maximum(isi - delta - 0.5, 1e-9), np.maximum(isi - delta + 0.5, 1.0)
+    target = 1.0 / np.clip(isi - delta, 1.0, None)
+    sol = None
+    for _ in range(5):
+        sol = _solve(A, isi, delta, sqrt_w, keep, want_cov, target=target)
+        if sol is None:
+            return None, math.inf
+        inv = 1.0 / np.clip(sol[2], 1e-12, None)
+        proj = np.clip(inv, lo, hi)
+        target = 1.0 / proj
+    rel = (inv[keep] - proj[keep]) / isi[keep]
+    w = sqrt_w[keep] ** 2
+    return sol, float(np.sum(w * rel * rel) / np.sum(w))
 
 
 def _isi_pred(lam, delta):
@@ -292,8 +317,13 @@ def _fit_rate_model(ctx: _Context, model: dict) -> None:
     use_c = float(np.std(B1)) > 0.01 * float(np.mean(B0))
     keep = base_ok & ~model["outlier"]
 
+    quant = model["zero_quantised"]
+
     def fit_at(delta, gamma, keep, want_cov=False):
         A = _design(ctx, model, gamma, use_c)
+        if quant:
+            sol, obj = _solve_censored(A, isi, delta, sqrt_w, keep, want_cov)
+            return obj, sol
         sol = _solve(A, isi, delta, sqrt_w, keep, want_cov)
         if sol is None:
             return math.inf, None
@@ -305,16 +335,22 @@ def _fit_rate_model(ctx: _Context, model: dict) -> None:
 
     lo, hi = 0.0, DELTA_MAX
     for rnd in range(2):  # fit, drop outliers (hot pixels, dust), refit near the first answer
-        if rnd == 0:
-            grid = np.arange(lo, hi + 1e-9, 0.5)
-            scores = [(fit_at(dl, best_gamma(dl, keep, 16), keep)[0], dl) for dl in grid]
-            d0 = min(scores)[1]
-        lo, hi = max(0.0, d0 - 0.5 + 0.25 * rnd), min(DELTA_MAX, d0 + 0.5 - 0.25 * rnd)
-        delta = stats.golden_min(lambda dl: fit_at(dl, best_gamma(dl, keep), keep)[0], lo, hi, iters=12)
+        if quant:  # delta = refractory frames + 1/2, exactly
+            grid = np.arange(0.5, DELTA_MAX, 1.0)
+            delta = min((fit_at(dl, best_gamma(dl, keep, 16), keep)[0], dl) for dl in grid)[1]
+        else:
+            if rnd == 0:
+                grid = np.arange(lo, hi + 1e-9, 0.5)
+                d0 = min((fit_at(dl, best_gamma(dl, keep, 16), keep)[0], dl) for dl in grid)[1]
+            lo, hi = max(0.0, d0 - 0.5 + 0.25 * rnd), min(DELTA_MAX, d0 + 0.5 - 0.25 * rnd)
+            delta = stats.golden_min(lambda dl: fit_at(dl, best_gamma(dl, keep), keep)[0], lo, hi, iters=12)
         gamma = best_gamma(delta, keep, iters=30)
         obj, sol = fit_at(delta, gamma, keep, want_cov=True)
         theta, cov, lam_pred = sol
         rel = np.where(base_ok, (isi - _isi_pred(lam_pred, delta)) / np.where(base_ok, isi, 1.0), 0.0)
+        if quant:
+            rel = np.where(base_ok, (isi - delta + 0.5 - np.ceil(1.0 / np.clip(lam_pred, 1e-12, 1.0) - 1e-9))
+                           / np.where(base_ok, isi, 1.0), 0.0)
         sd = stats.robust_sd(rel[keep])
         outlier = base_ok & (np.abs(rel) > max(6 * sd, 0.01))
         keep = base_ok & ~outlier
@@ -363,15 +399,25 @@ def _fit_flicker(ctx: _Context, model: dict):
     mask = (meas.rate < 0.45) & (lam < 0.6) & ~model["outlier"] & (meas.n >= 1)
     if mask.sum() < 16:
         return None
-    signal = stats.population_signal(ctx.spikes[:Tf], mask)
-    if K == 1:
-        light = np.full(Tf, float(np.sum((sens * light_x)[mask])))
-    else:
-        wts = interpolation_weights(K, ctx.spikes.shape[0])[:Tf]
-        xm = ctx.X.reshape(K, -1)[:, mask]
-        scale = (sens * light_x)[mask] / np.maximum(xm.mean(0), 1e-9)
-        light = wts @ (xm * scale).sum(axis=1)
-    return stats.fit_sine(signal, light, min_period=6.0, max_period=2.0 * ctx.spikes.shape[0])
+    weight = sens * light_x
+    wts = interpolation_weights(K, ctx.spikes.shape[0])[:Tf]
+    xk = ctx.X.reshape(K, -1)
+    scale = weight / np.maximum(xk.mean(0), 1e-9)
+
+    def light_of(m):  # expected light spikes per frame of the pixels in m, [Tf]
+        return wts @ (xk[:, m] * scale[m]).sum(axis=1)
+    fit = stats.fit_sine(stats.population_signal(ctx.spikes[:Tf], mask), light_of(mask),
+                         min_period=6.0, max_period=2.0 * ctx.spikes.shape[0])
+    # coherence: flicker modulates the light of every pixel in phase and by the same depth; the
+    # beat of regular pixel trains depends on their rate. Four brightness quartiles must agree.
+    edges = np.quantile(lam[mask], [0.25, 0.5, 0.75])
+    groups = np.searchsorted(edges, lam)
+    vecs = []
+    for gi in range(4):
+        m = mask & (groups == gi)
+        vecs.append(stats.sine_at(stats.population_signal(ctx.spikes[:Tf], m), light_of(m), 1.0 / fit.period_frames))
+    fit.coherence = float(abs(sum(vecs)) / max(sum(abs(v) for v in vecs), 1e-12))
+    return fit
 
 
 def _constant_interval_fraction(meas) -> float:
@@ -400,6 +446,8 @@ def _pixel_structure(ctx: _Context, model: dict) -> None:
     lam_obs = _lam_obs(model["isi"], delta)
     valid = model["keep"] | model["outlier"]
     valid &= (model["isi"] - delta >= 1.1) & np.isfinite(lam_obs)
+    if model["zero_quantised"]:
+        valid &= model["isi"] >= QUANTISED_MIN_ISI
     e = np.where(valid, lam_obs / lam_pred, np.nan)
     e1, e2 = (np.where(valid, _lam_obs(1.0 / np.maximum(h, 1e-12), delta) / lam_pred, np.nan) for h in ctx.halves)
     col = _column_factors(e, valid & ~model["outlier"], H, W)
@@ -571,8 +619,13 @@ def _flicker_effect(ctx, model):
     fl = model["flicker"]
     if fl is None:
         return Effect("flicker", False, 0.0, {"period_frames": None, "depth": None}, 0.0, "too few unsaturated pixels")
-    return _make("flicker", fl.depth, fl.z, {"period_frames": fl.period_frames, "depth": fl.depth,
-                                            "phase_rad": fl.phase})
+    params = {"period_frames": fl.period_frames, "depth": fl.depth, "phase_rad": fl.phase,
+              "group_coherence": fl.coherence}
+    eff = _make("flicker", fl.depth, fl.z, params)
+    if fl.coherence < MIN_COHERENCE:
+        eff.detected = False
+        eff.note = "periodicity not shared by all pixels (beat of regular pixel trains, not flicker)"
+    return eff
 
 
 def _readout_effects(ctx, model):
@@ -609,13 +662,15 @@ def _shot_effect(ctx, model, deterministic: Sensor):
     n = ctx.meas.n_isi[ok]
     inv = 1e-3
     for _ in range(3):  # inverse-variance weights: sampling variance + quantisation residue
-        v = max(inv, 0.0) / lam[ok] ** 2
+        v = max(inv, 0.0) / lam[ok] ** 2 + np.abs(vs[ok])  # the model's own spread counts too
         var_y = lam[ok] ** 4 * (2 * v ** 2 / (n - 1) + 0.02 / n)
         wts = 1.0 / var_y
         inv = float(np.sum(wts * y) / np.sum(wts))
-    se = float(math.sqrt(1.0 / np.sum(wts)))
+    # empirical standard error: deterministic interval modulation (flicker, motion) that the
+    # model reproduces only on average widens the spread of y beyond the weights' assumption
+    se = float(np.sqrt(np.sum(wts ** 2 * (y - inv) ** 2)) / np.sum(wts))
     electrons = 1.0 / inv if inv > 0 else math.inf
-    eff = _make("shot_noise", electrons if inv > 0 else None, inv / se, {"electrons": electrons if inv > 0 else None})
+    eff = _make("shot_noise", electrons if inv > 0 else None, inv / max(se, 1e-15), {"electrons": electrons if inv > 0 else None})
     return eff
 
 
@@ -637,7 +692,7 @@ def _build_sensor(ctx: _Context, model: dict, found: dict, electrons: float) -> 
     d = db.copy()
     if on.get("dark_current"):
         d = d + max(model["d"], 0.0)
-    if on.get("hot_pixels"):
+    if on.get("hot_pixels") and not ctx.self_ref:  # with 'self' the radiance already holds them
         hot = model["hot"]
         d[hot] += model["excess"][hot] / np.maximum(R[hot], 1e-6)
     fl = found.get("flicker")

@@ -114,3 +114,20 @@ def true_value(name: str, params: dict):
            "shot_noise": "electrons", "refractory": "frames", "flicker": "depth", "crosstalk": "fraction",
            "nonlinearity": "gamma"}.get(name)
     return (key, params[key]) if key else (None, None)
+
+
+def hidden_case(names, seed: int, height: int = 64, width: int = 64, frames: int = 1000):
+    """A "measured" recording with the effects ``names`` at random parameters (seeded).
+
+    Returns ``(spikes uint8 [T, H, W], radiance [H, W], intensity, {name: parameters})``;
+    intensity is log-uniform in 32..256 and the reference spans 0.05..1 (the envelope).
+    """
+    from ..sensor import simulate
+
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed), *[EFFECTS.index(n) for n in names]]))
+    effects = {n: draw_parameters(n, rng) for n in names}
+    intensity = float(math.exp(rng.uniform(math.log(32), math.log(256))))
+    radiance = test_radiance(height, width, rng)
+    sensor = make_sensor(effects, height, width, rng)
+    spikes = simulate(radiance, intensity, sensor, frames=frames, seed=int(rng.integers(1 << 30)))
+    return spikes, radiance, intensity, effects

@@ -1,0 +1,143 @@
+"""Rendering speed and the choice of the default Cycles samples (docs/rendering.md).
+
+    python bench/bench_render.py speed  [--scenes lego,mic] [--views 2] [--resolution 400]
+    python bench/bench_render.py noise  [--scenes ...] [--samples 1,2,4,8,16] [--reference 512]
+                                        [--subframes 16] [--motion 1.0] [--resolution 200]
+
+speed: seconds per view (K = 16 sub-frames as EXR + the ground-truth PNG) at the default
+settings, per scene, after the scene is built (build time printed apart); wall-clock and CPU
+seconds (all threads) per view, and the load average, since a shared machine slows the wall clock.
+The first view of a scene includes Cycles' one-time set-up (BVH, kernels), so use --views >= 2.
+
+noise: for one view per scene, the RMS error in radiance X (luminance on white) of the time
+average of its K sub-frames (default motion; all share the view's noise pattern) rendered with N
+samples, against the same average rendered with a high-sample reference, over the object's pixels;
+next to it, the spike noise at intensity 64: the RMS error of X recovered from the full 256-frame
+stream of the "paper" sensor (TFP over all frames, the sensor's maps divided out) against the
+same reference, and the same for TFP over a 32-frame window (the paper's "TFP-32" baseline; a
+shorter window is noisier). X is clipped to the sensor's range at intensity 64 (0..4: brighter
+pixels fire every frame). The default samples is the smallest N whose render noise is below the spike noise
+for every scene.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from spikegen import camera as cm
+from spikegen.presets import get_sensor
+from spikegen.recon import rate_to_radiance, tfp
+from spikegen.render import RenderJob, view_render_seed
+from spikegen.render_blender import BlenderRenderer, RenderSettings, build_bpy_scene
+from spikegen.scenes import SCENES, build_scene
+from spikegen.sensor import simulate
+from spikegen.spikeio import exr_to_radiance, read_exr
+
+
+X_MAX = 256.0 / 64.0  # saturation at intensity 64: one spike every frame
+
+
+def radiance(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """(X on white [H, W] clipped to the sensor's range at intensity 64, alpha [H, W]) of a render EXR."""
+    rgba = read_exr(path)
+    return np.clip(exr_to_radiance(rgba) + (1.0 - rgba[:, :, 3]), 0.0, X_MAX), rgba[:, :, 3]
+
+
+def speed(scenes, views: int, resolution: int) -> None:
+    job = RenderJob("x")
+    print(f"# seconds per view: {job.subframes} sub-frames (EXR) + 1 PNG at {resolution} x {resolution}, "
+          f"samples {job.samples} (PNG {job.png_samples}), {views} views per scene")
+    print(f"# load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
+    print(f"{'scene':<10} {'build s':>8} {'s/view':>8} {'cpu s/view':>11} {'s/image':>8}")
+    rig = cm.make_views("train", views, job.subframes, job.motion_deg)
+    all_times = []
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in scenes:
+            t0 = time.perf_counter()
+            scene, camera = build_bpy_scene(build_scene(name))
+            r = BlenderRenderer(scene, camera, RenderSettings(resolution, resolution, samples=job.samples,
+                                                              png_samples=job.png_samples))
+            build = time.perf_counter() - t0
+            t0, c0 = time.perf_counter(), time.process_time()
+            for v in rig:
+                r.set_view_seed(view_render_seed(0, v.split, v.index))
+                for k, pose in enumerate(v.subframe_poses):
+                    r.render_exr(pose, Path(tmp) / f"{name}_{v.index}_{k}.exr")
+                r.render_png(v.pose, Path(tmp) / f"{name}_{v.index}.png")
+            per_view = (time.perf_counter() - t0) / views
+            cpu = (time.process_time() - c0) / views
+            all_times.append((per_view, cpu))
+            print(f"{name:<10} {build:8.2f} {per_view:8.2f} {cpu:11.2f} {per_view / (job.subframes + 1):8.3f}",
+                  flush=True)
+    mean = np.mean(all_times, axis=0)
+    print(f"{'mean':<10} {'':>8} {mean[0]:8.2f} {mean[1]:11.2f}")
+
+
+def spike_noise(x_ref: np.ndarray, mask: np.ndarray, window: int, intensity: float = 64.0,
+                frames: int = 256) -> float:
+    """RMS error of X recovered by TFP over ``window`` frames (centred) from the paper sensor's
+    stream (its maps divided out)."""
+    h, w = x_ref.shape
+    sensor = get_sensor("paper", h, w, 0)
+    spikes = simulate(x_ref, intensity, sensor, frames=frames, seed=1)
+    x_hat = np.clip(rate_to_radiance(tfp(spikes, window), intensity, sensor), 0.0, X_MAX)
+    return float(np.sqrt(np.mean((x_hat - x_ref)[mask] ** 2)))
+
+
+def noise(scenes, samples_list, reference: int, resolution: int, subframes: int, motion_deg: float) -> None:
+    view = cm.make_views("train", 1, subframes, motion_deg)[0]
+    print(f"# RMS error in X over object pixels of the mean of {subframes} sub-frames (motion {motion_deg} deg), "
+          f"{resolution} x {resolution}, reference {reference} samples; X clipped to 0..{X_MAX:g}")
+    print(f"{'scene':<10} " + " ".join(f"{'N=' + str(s):>8}" for s in samples_list)
+          + f" {'TFP256@64':>10} {'TFP32@64':>9}")
+    with tempfile.TemporaryDirectory() as tmp:
+        for name in scenes:
+            scene, camera = build_bpy_scene(build_scene(name))
+            out = {s: _mean_subframes(scene, camera, view, s, resolution, Path(tmp))
+                   for s in [reference, *samples_list]}
+            x_ref, alpha = out[reference]
+            mask = alpha > 0.5
+            errs = [float(np.sqrt(np.mean((out[s][0] - x_ref)[mask] ** 2))) for s in samples_list]
+            print(f"{name:<10} " + " ".join(f"{e:8.4f}" for e in errs) + f" {spike_noise(x_ref, mask, 256):10.4f}"
+                  f" {spike_noise(x_ref, mask, 32):9.4f}", flush=True)
+
+
+def _mean_subframes(scene, camera, view, samples: int, resolution: int, tmp: Path):
+    """(mean X [H, W], mean alpha [H, W]) of the view's sub-frames rendered with ``samples``."""
+    r = BlenderRenderer(scene, camera, RenderSettings(resolution, resolution, samples=samples))
+    r.set_view_seed(view_render_seed(0, "train", 0))
+    xs, alphas = [], []
+    for k, pose in enumerate(view.subframe_poses):
+        r.render_exr(pose, tmp / f"{samples}_{k}.exr")
+        x, a = radiance(tmp / f"{samples}_{k}.exr")
+        xs.append(x)
+        alphas.append(a)
+    return np.mean(xs, axis=0), np.mean(alphas, axis=0)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("what", choices=["speed", "noise"])
+    ap.add_argument("--scenes", default=",".join(SCENES))
+    ap.add_argument("--views", type=int, default=2)
+    ap.add_argument("--resolution", type=int, default=None, help="default: 400 (speed), 200 (noise)")
+    ap.add_argument("--samples", default="1,2,4,8,16")
+    ap.add_argument("--reference", type=int, default=512)
+    ap.add_argument("--subframes", type=int, default=16, help="noise: sub-frames averaged (1 = one static frame)")
+    ap.add_argument("--motion", type=float, default=cm.DEFAULT_MOTION_DEG, help="noise: camera motion (deg)")
+    a = ap.parse_args()
+    scenes = [s for s in a.scenes.split(",") if s]
+    if a.what == "speed":
+        speed(scenes, a.views, a.resolution or 400)
+    else:
+        noise(scenes, [int(s) for s in a.samples.split(",")], a.reference, a.resolution or 200, a.subframes,
+              a.motion)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,385 @@
+"""Generate docs/fidelity.md (+ docs/fidelity/*.png) and the `calibrated` preset from measured data.
+
+    python docs/make_fidelity.py [--data ../shared/data] [--no-preset]
+
+Every number in the page is computed here, from shared/data/real (see its README) and from
+simulations seeded with fixed seeds, so a re-run gives the same page. Writes
+assets/calibrated.json + assets/calibrated.npz (the `calibrated` preset) unless --no-preset.
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+HERE = Path(__file__).resolve().parent
+REPO = HERE.parent
+sys.path.insert(0, str(REPO / "generator"))
+
+from spikegen.fidelity import stats, synth  # noqa: E402
+from spikegen.fidelity.diagnose import diagnose  # noqa: E402
+from spikegen.sensor import Sensor, simulate  # noqa: E402
+from spikegen.spikeio import read_spikes, write_bytes_atomic, atomic_path  # noqa: E402
+
+FIG = HERE / "fidelity"
+SEED = 2024
+
+
+# ---------------------------------------------------------------------- helpers
+def fig(name, draw, size=(6.0, 3.8)):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    f, ax = plt.subplots(figsize=size)
+    try:
+        draw(ax)
+        f.tight_layout()
+        with atomic_path(FIG / name) as tmp:
+            f.savefig(tmp, format="png", dpi=100)
+    finally:
+        plt.close(f)
+    return f"fidelity/{name}"
+
+
+def regularity(spikes, mask=None):
+    """Per-pixel (rate, ISI range, ISI CV, fraction of 1-frame ISIs) for pixels with >= 5 ISIs."""
+    p = stats.pixel_stats(spikes)
+    ok = p.n_isi >= 5
+    if mask is not None:
+        ok &= mask.reshape(-1)
+    iv, ipix = p.isi_values, _isi_pixels(spikes)
+    rng_max = np.zeros(p.n.size)
+    np.maximum.at(rng_max, ipix, iv)
+    spread = rng_max - p.isi_min
+    cv = np.sqrt(p.isi_var) / p.isi_mean
+    return {"rate": p.rate[ok], "range": spread[ok], "cv": cv[ok], "ones": p.ones[ok] / p.n_isi[ok],
+            "isi": iv[np.isin(ipix, np.flatnonzero(ok))]}
+
+
+def _isi_pixels(spikes):
+    pix, _ = stats.spike_times(spikes)
+    return pix[1:][pix[1:] == pix[:-1]]
+
+
+def pct(x):
+    return f"{100 * x:.1f} %"
+
+
+def table(rows, head):
+    out = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    out += ["| " + " | ".join(str(c) for c in r) + " |" for r in rows]
+    return "\n".join(out)
+
+
+# ---------------------------------------------------------------------- 1. timing regularity
+def study_timing(real, md, results):
+    car = read_spikes(real / "car_500frames_250x400.npz")
+    T = car.shape[0]
+    r1, r2 = car[: T // 2].mean(0), car[T // 2:].mean(0)
+    static = (np.abs(r1 - r2) <= 0.1 * np.maximum(r1, r2)) & (r1 > 0.01) & (np.maximum(r1, r2) < 0.9)
+    meas = regularity(car, static)
+    x = np.minimum(car.mean(0), 1.0)  # radiance that makes the ideal sensor fire at the measured rate (I = 256)
+    diag = diagnose(car, "self", 256.0)
+    shot = diag.effect("shot_noise")
+    electrons = shot.parameters.get("electrons") or math.inf
+    results["car_diagnosis"] = diag
+    results["electrons"] = electrons
+    sims = {
+        "ours, ideal (no temporal noise)": Sensor(name="ideal"),
+        f"ours, shot noise N_e = {electrons:.3g} (fitted)": Sensor(name="shot", electrons=float(electrons)),
+        "paper's reference generator (rsir)": Sensor(name="rsir", kind="rsir"),
+    }
+    rows = [("measured (car, static background)", f"{meas['rate'].size}", pct(np.mean(meas["range"] <= 1)),
+             f"{np.median(meas['cv']):.4f}", pct(np.mean(meas["ones"]))) ]
+    series = {"measured": meas}
+    for label, sensor in sims.items():
+        s = simulate(x, 256.0, sensor, frames=T, seed=SEED)
+        reg = regularity(s, static)
+        series[label] = reg
+        rows.append((label, f"{reg['rate'].size}", pct(np.mean(reg["range"] <= 1)), f"{np.median(reg['cv']):.4f}",
+                     pct(np.mean(reg["ones"]))))
+
+    def draw(ax):
+        bins = np.geomspace(0.01, 1, 25)
+        for label, reg in series.items():
+            idx = np.digitize(reg["rate"], bins)
+            med = [np.median(reg["cv"][idx == i]) if np.sum(idx == i) > 20 else np.nan for i in range(1, len(bins))]
+            ax.loglog(np.sqrt(bins[1:] * bins[:-1]), np.maximum(med, 1e-4), "o-", ms=3, label=label)
+        ax.set_xlabel("rate (spikes / frame)")
+        ax.set_ylabel("median ISI coefficient of variation")
+        ax.legend(fontsize=7)
+
+    path = fig("timing_cv.png", draw)
+    md += ["## 1. Timing regularity: the static background of the car recording", "",
+           f"`car_500frames_250x400.npz` ({T} frames). Static pixels: rate in the two halves within 10 % and "
+           f"below 0.9 ({pct(static.mean())} of the frame). The same radiance (the measured rate, so that an "
+           "ideal pixel fires at it) is simulated with each generator; statistics over pixels with >= 5 intervals.",
+           "", table(rows, ["stream", "pixels", "ISI range <= 1 frame", "median ISI CV", "1-frame ISIs"]), "",
+           f"![ISI CV against rate]({path})", "",
+           f"Fitted photo-electrons per threshold (the `shot_noise` estimator of `spikegen diagnose`, radiance "
+           f"`self`): N_e = {electrons:.4g} (z = {shot.z:.3g}). A real pixel is almost as regular as the "
+           "noise-free integrate-and-fire model; the paper's reference generator (a Poisson gray level every "
+           "frame plus U(0,1) interval noise) is far noisier than the camera.", ""]
+
+
+# ---------------------------------------------------------------------- 2. BIT maps
+def study_maps(real, md, results):
+    with np.load(real / "bit_camera_calibration_250x400.npz") as z:
+        nl, nd = z["Nl"].astype(np.float64), z["Nd"].astype(np.float64)
+    R = nl / np.median(nl)
+    H, W = R.shape
+    yy, xx = np.mgrid[0:H, 0:W]
+    u, v = (xx - (W - 1) / 2) / ((W - 1) / 2), (yy - (H - 1) / 2) / ((H - 1) / 2)
+    A = np.stack([u ** i * v ** j for i in range(5) for j in range(5 - i)], axis=-1).reshape(-1, 15)
+    logr = np.log(R).reshape(-1)
+    coef, *_ = np.linalg.lstsq(A, logr, rcond=None)
+    smooth = np.exp(A @ coef).reshape(H, W)
+    res = R / smooth
+    col = np.median(res, axis=0)
+    row = np.median(res, axis=1)
+    pix = res / col[None, :] / row[:, None]
+    ref_paper = np.unravel_index(np.argmin(np.abs(nl - nl.mean())), nl.shape)
+    # what the normalisation does to brightness: R relative to pixel (0,0) vs median 1
+    rel00 = nl / nl[0, 0]
+    dark_to_rate = 1.0  # shown in lux
+    rows = [("R (median 1): 1st-99th percentile", f"{np.percentile(R, 1):.3f} - {np.percentile(R, 99):.3f}"),
+            ("R min / max", f"{R.min():.3f} / {R.max():.3f}"),
+            ("smooth vignetting (degree-4 fit), range", f"{smooth.min():.3f} - {smooth.max():.3f}"),
+            ("column factors, std", f"{np.std(col):.4f}"), ("row factors, std", f"{np.std(row):.4f}"),
+            ("per-pixel spread (robust std of the rest)", f"{stats.robust_sd(pix):.4f}"),
+            ("pixels > 5 robust std from their smooth value (dust)", f"{int(np.sum(np.abs(pix - 1) > 5 * stats.robust_sd(pix)))}"),
+            ("dark current L_d median (lux-eq)", f"{np.median(nd):.3f}"),
+            ("L_d 99th percentile / max", f"{np.percentile(nd, 99):.2f} / {nd.max():.1f}"),
+            ("hot pixels (L_d > 60 lux-eq)", f"{int(np.sum(nd > 60))}"),
+            ("corr(R, L_d) (Spearman)", f"{_spearman(R, nd):.3f}"),
+            ("pixel (0,0): response / median", f"{nl[0, 0] / np.median(nl):.4f}"),
+            (f"paper's reference pixel {tuple(int(i) for i in ref_paper)} (closest to the average): response / median",
+             f"{nl[ref_paper] / np.median(nl):.4f}"),
+            ("mean R if normalised to pixel (0,0) (i.e. simulated brightness factor)", f"{rel00.mean():.4f}"),
+            ("mean R, normalised to median 1", f"{R.mean():.4f}")]
+    results["bit_R"] = R
+
+    def draw(ax):
+        im = ax.imshow(R, cmap="magma", vmin=np.percentile(R, 0.5), vmax=np.percentile(R, 99.5))
+        ax.figure.colorbar(im, ax=ax, label="R (median 1)")
+        ax.set_title("BIT camera responsivity")
+
+    p1 = fig("bit_responsivity.png", draw, (6, 4))
+
+    def draw2(ax):
+        ax.hist(nd.reshape(-1), bins=np.geomspace(max(nd.min(), 0.1), nd.max() + 1, 60), log=True)
+        ax.set_xscale("log")
+        ax.axvline(60, color="r", lw=0.8)
+        ax.set_xlabel("dark current L_d (lux-equivalent)")
+        ax.set_ylabel("pixels")
+
+    p2 = fig("bit_dark.png", draw2)
+    md += ["## 2. The BIT calibration maps", "", "`bit_camera_calibration_250x400.npz`: `Nl` (responsivity "
+           "relative to pixel (0,0)), `Nd` (dark current, lux-equivalent).", "", table(rows, ["statistic", "value"]),
+           "", f"![responsivity]({p1})", "", f"![dark current]({p2})", "",
+           f"Pixel (0,0) responds {nl[0, 0] / np.median(nl):.3f} x the median pixel. Normalising R to it, as one "
+           f"public implementation does, gives every pixel R / R(0,0): mean {rel00.mean():.3f}, so every simulated "
+           f"stream is {100 * (1 - rel00.mean()):.0f} % darker (fewer spikes) than the intensity says. The paper's "
+           f"rule (reference = the pixel closest to the average response) picks a pixel at "
+           f"{nl[ref_paper] / np.median(nl):.4f} x the median, i.e. agrees with the median-1 convention the "
+           "project uses (`spikegen calibrate` applies the paper's rule, then normalises to median 1).", ""]
+
+
+def _spearman(a, b):
+    ra = np.argsort(np.argsort(a.reshape(-1))).astype(np.float64)
+    rb = np.argsort(np.argsort(b.reshape(-1))).astype(np.float64)
+    return float(np.corrcoef(ra, rb)[0, 1])
+
+
+# ---------------------------------------------------------------------- 3. saturation
+def study_saturation(real, md, results):
+    car = read_spikes(real / "car_100kmh_250x400.dat", size=(400, 250))
+    T = car.shape[0]
+    rate = car.mean(0)
+    h1, h2 = car[: T // 2].mean(0), car[T // 2:].mean(0)
+    bright = (rate >= 0.4) & (np.abs(h1 - h2) <= 0.05)  # bright and static (the car moves through)
+    meas = regularity(car, bright)
+    x = np.minimum(rate, 1.0)
+    rows = [("measured (car .dat, static pixels with rate >= 0.4)", pct(np.mean(meas["isi"] == 1)),
+             f"{np.mean(rate >= 0.95) * 100:.2f} %", f"{rate.max():.3f}")]
+    for label, sensor in (("ours (ideal)", Sensor()), ("ours, refractory 1 frame", Sensor(refractory_frames=1)),
+                          ("paper's reference generator (rsir)", Sensor(kind="rsir"))):
+        s = simulate(x, 256.0, sensor, frames=T, seed=SEED)
+        reg = regularity(s, bright)
+        r = s.mean(0)
+        rows.append((label, pct(np.mean(reg["isi"] == 1)) if reg["isi"].size else "-", f"{np.mean(r >= 0.95) * 100:.2f} %",
+                     f"{r.max():.3f}"))
+    md += ["## 3. Saturation and consecutive-frame spikes", "",
+           f"`car_100kmh_250x400.dat` ({T} frames), {pct(bright.mean())} of pixels fire at >= 0.4 spikes/frame "
+           "with the same rate in both halves (static). "
+           "Each generator sees the radiance that makes an ideal pixel fire at the measured rate.", "",
+           table(rows, ["stream", "1-frame ISIs among bright pixels", "pixels at >= 0.95 spikes/frame", "max rate"]),
+           "", "Bright pixels fire on consecutive frames, so the readout has no dead frame: `refractory` is "
+           "absent, and the rate saturates at one spike per frame (the `A = min(A, 1)` clamp).", ""]
+
+
+# ---------------------------------------------------------------------- 4. low light
+def study_lowlight(real, md, results):
+    uh = read_spikes(real / "uhsr_lowlight_250x250.npz")
+    T = uh.shape[0]
+    p = stats.pixel_stats(uh)
+    rate_count = uh.reshape(T, -1).mean(0)
+    diag = diagnose(uh, "self", 256.0)
+    results["lowlight_diagnosis"] = diag
+    ok = p.n_isi >= 4
+    cv = np.sqrt(p.isi_var[ok]) / p.isi_mean[ok]
+    x = np.minimum(uh.mean(0), 1.0)
+    e_car = results.get("electrons", math.inf)
+    rows = [("measured", f"{np.mean(rate_count):.4f}", pct(np.mean(p.n == 0)), f"{np.percentile(rate_count, 1):.4f}",
+             f"{np.median(cv):.3f}")]
+    for label, sensor in (("ours, ideal", Sensor()),
+                          (f"ours, N_e = {e_car:.3g} (car fit)", Sensor(electrons=float(e_car)) if math.isfinite(e_car) else Sensor()),
+                          ("paper's reference generator (rsir)", Sensor(kind="rsir"))):
+        s = simulate(x, 256.0, sensor, frames=T, seed=SEED)
+        ps = stats.pixel_stats(s)
+        o = ps.n_isi >= 4
+        rows.append((label, f"{s.mean():.4f}", pct(np.mean(ps.n == 0)), f"{np.percentile(s.reshape(T, -1).mean(0), 1):.4f}",
+                     f"{np.median(np.sqrt(ps.isi_var[o]) / ps.isi_mean[o]):.3f}"))
+    shot = diag.effect("shot_noise")
+    hot = diag.effect("hot_pixels")
+    md += ["## 4. The low-light recording", "",
+           f"`uhsr_lowlight_250x250.npz` ({T} frames, mean rate {uh.mean():.4f}).", "",
+           table(rows, ["stream", "mean rate", "pixels without a spike", "1st percentile rate", "median ISI CV (>= 4 ISIs)"]),
+           "", f"`spikegen diagnose --reference self` on it: detected {', '.join(diag.detected) or 'nothing'}; "
+           f"shot noise N_e = {_fmt(shot.parameters.get('electrons'))} (z = {shot.z:.3g}); hot pixels: "
+           f"{hot.parameters.get('found')} found. At low rates the intervals vary more than the car's "
+           "background predicts: the low-light stream needs far fewer electrons per threshold (or another "
+           "noise source, e.g. dark-current shot noise, which the model does not separate).", ""]
+
+
+def _fmt(v):
+    return "-" if v is None else f"{v:.4g}"
+
+
+# ---------------------------------------------------------------------- gains and the preset
+def study_gain(real, md, results):
+    """Held-out frames: ideal against the fitted temporal noise, the radiance from the fit frames."""
+    rows = []
+    e_car = results["electrons"]
+    for label, path, kw in (("car (500 frames)", "car_500frames_250x400.npz", {}),
+                            ("low light (200 frames)", "uhsr_lowlight_250x250.npz", {})):
+        s = read_spikes(real / path, **kw)
+        T = s.shape[0]
+        Tf = int(round(0.8 * T))
+        x = np.minimum(stats.window_rate(s[:Tf]).reshape(s.shape[1:]), 1.0)
+        sims = {"ideal": simulate(x, 256.0, Sensor(), frames=T, seed=SEED),
+                "calibrated noise": simulate(x, 256.0, Sensor(electrons=float(e_car)), frames=T, seed=SEED)}
+        m = {k: stats.discrepancies(s[Tf:], v[Tf:], x) for k, v in sims.items()}
+        for k in stats.MEASURES:
+            rows.append((label, k, f"{m['ideal'][k]:.4g}", f"{m['calibrated noise'][k]:.4g}"))
+    md += ["## 5. Held-out frames: ideal against the calibrated temporal noise", "",
+           "Radiance estimated from the first 80 % of the frames (static scenes: `self`), streams simulated "
+           f"for all frames with the ideal sensor and with shot noise at the fitted N_e = {e_car:.4g}; the "
+           "named measures (`spikegen.fidelity.stats.MEASURES`) on the last 20 %.", "",
+           table(rows, ["recording", "measure", "ideal", f"N_e = {e_car:.3g}"]), "",
+           "`spikegen diagnose --reference self` on the same recordings:", ""]
+    for label, key in (("car", "car_diagnosis"), ("low light", "lowlight_diagnosis")):
+        d = results[key]
+        found = ", ".join(f"{n} ({_short(d.effect(n).parameters)})" for n in d.detected) or "nothing"
+        md.append(f"- {label}: detected {found}.")
+    md.append("")
+
+
+def _short(params):
+    return ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in params.items()
+                     if v is not None and k in ("sigma", "count", "electrons", "depth", "period_frames", "frames"))
+
+
+def synthetic_envelope(md, draws=3):
+    """Detection rate and parameter error on hidden effects (the tests' protocol, more draws)."""
+    rows = []
+    for name in list(synth.EFFECTS) + ["none"]:
+        hits, errs = 0, []
+        for seed in range(100, 100 + draws):
+            names = [] if name == "none" else [name]
+            spikes, x, intensity, eff = synth.hidden_case(names, seed)
+            d = diagnose(spikes, x, intensity)
+            if name == "none":
+                hits += d.detected == []
+                continue
+            hits += d.detected[:1] == [name]
+            key, true = synth.true_value(name, eff[name])
+            if key:
+                est = d.effect(name).parameters.get(key)
+                errs.append(abs(est - true) / true if est is not None else math.inf)
+        rows.append((name, f"{hits}/{draws}", f"{100 * max(errs):.1f} %" if errs else "-"))
+    md += ["## 7. Synthetic check: hidden effects inside the envelope", "",
+           f"{draws} seeded draws per effect (64 x 64, 1000 frames, intensity 32-256, radiance 0.05-1; "
+           "`spikegen.fidelity.synth`): named first / largest parameter error.", "",
+           table(rows, ["effect", "named first", "max parameter error"]), ""]
+
+
+def write_preset(results, md):
+    from spikegen.presets import get_sensor
+    from spikegen.sensorfile import save_sensor
+
+    e = results["electrons"]
+    paper = get_sensor("paper", 250, 400)
+    notes = {"fitted_by": "docs/make_fidelity.py", "electrons_from": "car_500frames_250x400.npz static background",
+             "maps": "BIT camera calibration (paper preset)"}
+    sensor = paper.replace(name="calibrated", electrons=float(e) if math.isfinite(e) else 0.0, notes=notes)
+    json_path, npz_path = save_sensor(sensor, REPO / "assets" / "calibrated")
+    md += ["## 6. The `calibrated` preset", "",
+           f"`paper` (BIT maps, R median 1) plus shot noise with N_e = {sensor.electrons:.4g} photo-electrons per "
+           f"threshold, fitted above; no refractory period, subtractive reset, no flicker (none was found). "
+           f"Written to `assets/{json_path.name}` + `assets/{npz_path.name}` "
+           f"({(json_path.stat().st_size + npz_path.stat().st_size) / 1e6:.2f} MB).", ""]
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
+    ap.add_argument("--no-preset", action="store_true")
+    ap.add_argument("--draws", type=int, default=3)
+    args = ap.parse_args(argv)
+    real = args.data / "real"
+    if not real.is_dir():
+        sys.exit(f"make_fidelity: no measured data at {real}")
+    FIG.mkdir(parents=True, exist_ok=True)
+    t0 = time.time()
+    md = ["# Fidelity: the simulator against real spike cameras", "",
+          "Generated by `python docs/make_fidelity.py` (do not edit by hand). Data: `shared/data/real` "
+          "(see its README). Tools: `spikegen diagnose` / `spikegen calibrate` (`spikegen.fidelity`).", ""]
+    results = {}
+    study_timing(real, md, results)
+    study_maps(real, md, results)
+    study_saturation(real, md, results)
+    study_lowlight(real, md, results)
+    study_gain(real, md, results)
+    if not args.no_preset:
+        write_preset(results, md)
+    synthetic_envelope(md, args.draws)
+    md += [ENVELOPE_TEXT, "", f"_Generated in {time.time() - t0:.0f} s._", ""]
+    write_bytes_atomic(HERE / "fidelity.md", "\n".join(md).encode("utf-8"))
+    print(f"wrote {HERE / 'fidelity.md'}")
+
+
+ENVELOPE_TEXT = """## Detectability envelope of `spikegen diagnose`
+
+Stated and tested (tests/test_diagnose.py): recordings of >= 1000 frames, >= 64 x 64 pixels,
+intensity 32-256, a reference whose radiance spans about 0.05-1 with pixel-scale texture (for
+`crosstalk`). Within it the diagnosis names, and estimates within 20 %:
+`gain_nonuniformity` sigma >= 0.03; `column_pattern` sigma >= 0.02; `dark_current` rate >= 0.002;
+`hot_pixels` >= 5 pixels at rate >= 0.05; `shot_noise` electrons <= 2000; `reset_to_zero`;
+`refractory` >= 1 frame; `flicker` depth >= 0.05, period 10-1000 frames; `crosstalk` fraction >= 0.05;
+`nonlinearity` |gamma - 1| >= 0.1; and nothing on data from the baseline sensor. The tests draw
+parameters up to: gain sigma 0.12, column sigma 0.08, dark rate 0.02, 30 hot pixels of rate 0.05-0.3,
+electrons 20-2000, refractory 1-4 frames, flicker depth 0.4, crosstalk 0.3, gamma 0.55-1.45.
+With `--reference self` (static scenes) only temporal effects (`shot_noise`, `flicker`,
+`reset_to_zero`, `refractory` via missing short intervals) and, on smooth scenes, `hot_pixels`
+and `column_pattern` can be told; gain, dark current, crosstalk and nonlinearity need a reference."""
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,117 @@
+"""``spikegen diagnose --report DIR``: the diagnosis as a person reads it (Markdown + PNG plots).
+
+matplotlib (Agg) is imported here only; every file is written atomically.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from ..spikeio import atomic_path, write_bytes_atomic
+from . import stats
+
+
+def _fig(path, draw, size=(5.5, 4.0)):
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, ax = plt.subplots(figsize=size)
+    try:
+        draw(ax)
+        fig.tight_layout()
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, format="png", dpi=110)
+    finally:
+        plt.close(fig)
+
+
+def _plots(result, spikes, radiance, out: Path) -> list:
+    fit = result.fit
+    T, H, W = spikes.shape
+    Tf = result.info["fit_frames"]
+    names = []
+    if not isinstance(radiance, str) and fit.get("lam_pred") is not None:
+        x = np.asarray(radiance, dtype=np.float64)
+        xm = (x.mean(axis=0) if x.ndim == 3 else x).reshape(-1)
+        rate = 1.0 / fit["isi"]
+        model = 1.0 / (fit["delta"] + 1.0 / np.clip(fit["lam_pred"], 1e-12, 1.0))
+        ideal = np.minimum(result.info["intensity"] / 256.0 * xm, 1.0)
+
+        def rate_plot(ax):
+            ax.loglog(xm, rate, ".", ms=2, alpha=0.4, label="measured")
+            o = np.argsort(xm)
+            ax.loglog(xm[o], ideal[o], "k-", lw=1, label="baseline (ideal)")
+            ax.loglog(xm[o], model[o], "r.", ms=1, alpha=0.5, label="fitted model")
+            ax.set_xlabel("reference radiance X")
+            ax.set_ylabel("spikes / frame")
+            ax.legend(fontsize=8)
+
+        _fig(out / "rates.png", rate_plot)
+        names.append(("rates.png", "Per-pixel rate against radiance: measured, baseline, fitted model."))
+        if fit.get("e") is not None:
+            e = np.where(np.isfinite(fit["e"]), fit["e"], np.nan).reshape(H, W)
+
+            def map_plot(ax):
+                im = ax.imshow(e, cmap="coolwarm", vmin=np.nanpercentile(e, 1), vmax=np.nanpercentile(e, 99))
+                ax.figure.colorbar(im, ax=ax, label="measured / model rate")
+                ax.set_title("per-pixel responsivity residual")
+
+            _fig(out / "residual_map.png", map_plot)
+            names.append(("residual_map.png", "Measured over modelled rate per pixel (gain, columns, hot pixels)."))
+    s = spikes[:Tf].reshape(Tf, -1).sum(axis=1).astype(np.float64)
+
+    def spectrum_plot(ax):
+        p = np.abs(np.fft.rfft(s - s.mean())) ** 2 / Tf
+        f = np.fft.rfftfreq(Tf)
+        ax.semilogy(f[1:], p[1:], lw=0.8)
+        ax.set_xlabel("frequency (1 / frames)")
+        ax.set_ylabel("power of the population signal")
+
+    _fig(out / "spectrum.png", spectrum_plot)
+    names.append(("spectrum.png", "Temporal spectrum of the population signal (flicker shows as a line)."))
+    ps = stats.pixel_stats(spikes[:Tf])
+
+    def isi_plot(ax):
+        v = ps.isi_values
+        if v.size:
+            ax.hist(v, bins=np.arange(0.5, min(v.max(), 200) + 1.5), log=True)
+        ax.set_xlabel("inter-spike interval (frames)")
+        ax.set_ylabel("count")
+
+    _fig(out / "isi.png", isi_plot)
+    names.append(("isi.png", "Pooled inter-spike-interval histogram of the fit frames."))
+    return names
+
+
+def markdown(result, figures=()) -> str:
+    info = result.info
+    lines = ["# spikegen diagnose", "",
+             f"Measured: `{info.get('measured', '?')}`, {info['width']}x{info['height']}, {info['frames']} frames "
+             f"({info['fit_frames']} fitted, {info['held_out_frames']} held out); intensity {info['intensity']:.4g}; "
+             f"reference: {info['reference']}; baseline sensor `{info['baseline_sensor']}`.", "",
+             "## Effects", "",
+             "Detected, strongest first: " + (", ".join(f"`{n}`" for n in result.detected) or "none") + ".", "",
+             "| effect | detected | score (x envelope) | z | parameters | note |", "|---|---|---|---|---|---|"]
+    for e in sorted(result.effects, key=lambda e: (-int(e.detected), -e.score)):
+        params = ", ".join(f"{k}={v:.4g}" if isinstance(v, float) else f"{k}={v}" for k, v in e.parameters.items())
+        lines.append(f"| {e.name} | {'yes' if e.detected else 'no'} | {e.score:.3g} | {e.z:.3g} | {params} | {e.note} |")
+    lines += ["", "## Held-out frames: baseline against extended model", "",
+              "| measure | baseline | extended | meaning |", "|---|---|---|---|"]
+    for k, v in result.gain().items():
+        lines.append(f"| {k} | {v['baseline']:.4g} | {v['extended']:.4g} | {stats.MEASURES[k]} |")
+    lines += [""]
+    for name, caption in figures:
+        lines += [f"![{caption}]({name})", "", caption, ""]
+    return "\n".join(lines)
+
+
+def write_report(result, spikes, radiance, out_dir) -> Path:
+    out = Path(out_dir)
+    out.mkdir(parents=True, exist_ok=True)
+    figures = _plots(result, spikes, radiance, out)
+    path = out / "report.md"
+    write_bytes_atomic(path, markdown(result, figures).encode("utf-8"))
+    return path

@@ -1,0 +1,80 @@
+"""Command line: ``spikenerf train DATASET ...`` and ``spikenerf eval RUN`` (shared/specs/cli.md)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import click
+
+from spikegen.errors import SpikegenError
+
+from .methods import DEFAULT_METHOD, METHODS
+
+
+class _Group(click.Group):
+    """Turns project errors into one line on stderr and a non-zero exit (no traceback)."""
+
+    def invoke(self, ctx):
+        try:
+            return super().invoke(ctx)
+        except SpikegenError as exc:
+            click.echo(f"error: {exc}", err=True)
+            sys.exit(exc.exit_code)
+        except KeyboardInterrupt:
+            click.echo("interrupted; rerun the same command to resume from the last checkpoint", err=True)
+            sys.exit(130)
+
+
+@click.group(cls=_Group)
+def main():
+    """Radiance fields from spike streams (SpikeNeRF, CVPR 2024)."""
+
+
+@main.command()
+@click.argument("dataset", type=click.Path(path_type=Path))
+@click.option("--method", default=DEFAULT_METHOD, show_default=True, type=click.Choice(list(METHODS)),
+              help="Supervision: the paper's, its ablation, the TFP/TFI baselines, or the project's best.")
+@click.option("--iters", default=3000, show_default=True, type=click.IntRange(min=1), help="Training iterations.")
+@click.option("--device", default="auto", show_default=True, type=click.Choice(["auto", "cpu", "cuda"]))
+@click.option("--resolution", default=0, type=click.IntRange(min=0),
+              help="Train at this width (must divide the dataset's); 0 = the dataset's.")
+@click.option("--out", "out", type=click.Path(path_type=Path), default=None,
+              help="Run folder (default runs/<dataset>_<method>). An existing checkpoint there is resumed.")
+@click.option("--seed", default=0, show_default=True, type=int)
+@click.option("--batch-rays", default=2048, show_default=True, type=click.IntRange(min=1))
+@click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def train(dataset, method, iters, device, resolution, out, seed, batch_rays, do_eval, quiet):
+    """Train a radiance field on a spike dataset folder (dataset.md)."""
+    from .train import TrainConfig, train as run_train
+
+    dataset = dataset.resolve()
+    out = out or Path("runs") / f"{dataset.name}_{method}"
+    cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
+                      seed=seed, batch_rays=batch_rays)
+    ck = run_train(cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True))
+    click.echo(f"checkpoint: {ck}")
+    if do_eval:
+        _eval(out, "test", device, quiet)
+
+
+@main.command("eval")
+@click.argument("run", type=click.Path(path_type=Path))
+@click.option("--split", default="test", show_default=True)
+@click.option("--device", default="auto", show_default=True, type=click.Choice(["auto", "cpu", "cuda"]))
+@click.option("--quiet", is_flag=True)
+def eval_cmd(run, split, device, quiet):
+    """Render the held-out views of RUN and write RUN/metrics.json and images."""
+    _eval(run, split, device, quiet)
+
+
+def _eval(run, split, device, quiet):
+    from .eval import evaluate
+
+    m = evaluate(run, split, device=device, progress=not quiet)
+    click.echo(f"{run}/metrics.json: {m['views']} views, PSNR {m['psnr']:.2f} dB (object {m['psnr_object']:.2f}), "
+               f"SSIM {m['ssim']:.3f} (object {m['ssim_object']:.3f}), LPIPS {m['lpips']}")
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,89 @@
+"""``spikenerf eval``: render the held-out views of a run, compare with ground truth.
+
+Comparison space (the same for every method): sRGB-encoded luminance composited on white,
+in [0, 1] -- the display image a person sees, as the paper compares. Ground truth: the
+view's ``r_N.png`` -> linear luminance on white (sensor-model.md) -> sRGB encoding. The
+model's output is linear luminance on white -> the same encoding.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from spikegen import spikeio
+from spikegen.errors import InputError
+
+from .data import ground_truth, load_dataset
+from .metrics import Lpips, psnr, ssim
+from .render import render_image
+from .train import CHECKPOINT, field_from_checkpoint, load_checkpoint, resolve_device
+
+
+def _mean(vals):
+    vals = [v for v in vals if v is not None and np.isfinite(v)]
+    return float(np.mean(vals)) if vals else None
+
+
+def evaluate(run: Path, split: str = "test", device: str = "auto", progress: bool = True,
+             max_views: int | None = None) -> dict:
+    """Write ``run/metrics.json`` and ``run/eval_<split>/`` images; returns the metrics."""
+    run = Path(run)
+    ck_path = run / CHECKPOINT
+    if not ck_path.is_file():
+        raise InputError(f"{run}: no {CHECKPOINT} (not a training run, or training has not saved yet)")
+    dev = resolve_device(device)
+    ck = load_checkpoint(ck_path, dev)
+    cfg = ck["config"]
+    ds = load_dataset(cfg["dataset"])
+    if split not in ds.splits:
+        raise InputError(f"{ds.root}: no {split!r} split (has {', '.join(ds.splits)})")
+    views = ds.splits[split][:max_views] if max_views else ds.splits[split]
+    field = field_from_checkpoint(ck, dev).eval()
+    H, W, focal = ck["height"], ck["width"], ck["focal_px"]
+    lp = Lpips()
+    out_dir = run / f"eval_{split}"
+    rows = []
+    for i, view in enumerate(tqdm(views, desc=f"eval {split}", disable=not progress, unit="view")):
+        pose = torch.as_tensor(view.pose, dtype=torch.float32, device=dev)
+        x, _ = render_image(field, pose, H, W, focal)
+        pred = spikeio.linear_to_srgb(x.clamp(0, 1).cpu().numpy())
+        gt_x, alpha = ground_truth(view, H, W)
+        gt = spikeio.linear_to_srgb(gt_x)
+        mask = alpha > 0
+        rows.append(_view_metrics(pred, gt, mask, lp))
+        _write_images(out_dir, view.name.replace("/", "_"), pred, gt)
+    metrics = _summary(split, rows, lp, ck)
+    spikeio.write_json_atomic(run / "metrics.json", metrics)
+    return metrics
+
+
+def _view_metrics(pred, gt, mask, lp) -> dict:
+    return {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt),
+            "psnr_object": psnr(pred, gt, mask) if mask.any() else None,
+            "ssim_object": ssim(pred, gt, mask) if mask.any() else None,
+            "lpips": lp(pred, gt) if lp.available else None,
+            "lpips_object": lp(pred, gt, mask) if lp.available else None}
+
+
+def _summary(split, rows, lp, ck) -> dict:
+    keys = ("psnr", "ssim", "lpips", "psnr_object", "ssim_object", "lpips_object")
+    out = {"split": split, "views": len(rows)}
+    out.update({k: _mean([r[k] for r in rows]) for k in keys})
+    out["train_seconds"] = round(float(ck["train_seconds"]), 2)
+    out["iterations"] = int(ck["iteration"])
+    out["method"] = ck["config"]["method"]
+    out["resolution"] = [int(ck["height"]), int(ck["width"])]
+    out["compared_as"] = "sRGB-encoded luminance composited on white, [0, 1]"
+    if not lp.available:
+        out["lpips_note"] = "null: " + lp.reason
+    return out
+
+
+def _write_images(out_dir: Path, name: str, pred: np.ndarray, gt: np.ndarray) -> None:
+    spikeio.write_png(out_dir / f"{name}.png", pred)
+    gap = np.ones((pred.shape[0], 4))
+    spikeio.write_png(out_dir / f"{name}_gt_vs_pred.png", np.concatenate([gt, gap, pred], axis=1))

@@ -1,0 +1,270 @@
+"""Training loop: seeded, checkpointed, resumable, device-agnostic.
+
+Every iteration draws its rays from a ``torch.Generator`` seeded by ``(seed, iteration)``, so
+a run resumed from a checkpoint continues with exactly the rays an uninterrupted run uses.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from spikegen.errors import InputError, SpikegenError
+from spikegen.spikeio import atomic_path, write_json_atomic
+
+from . import neuron
+from .data import load_dataset
+from .methods import METHODS
+from .model import GridField
+from .render import pixel_rays, render_rays
+from .targets import Targets, build_targets
+
+CHECKPOINT = "checkpoint.pt"
+
+
+class TrainError(SpikegenError):
+    """Training cannot go on (e.g. the loss became NaN)."""
+
+    exit_code = 4
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    dataset: str
+    method: str = "spikelik"
+    iters: int = 3000
+    device: str = "auto"
+    resolution: int = 0  # 0 = the dataset's
+    seed: int = 0
+    batch_rays: int = 2048
+    lr_grid: float = 0.1
+    lr_mlp: float = 2e-3
+    grid_start: int = 32
+    grid_final: int = 0  # 0 = chosen from the image size
+    upsample_at: tuple = (0.15, 0.3, 0.45)  # fractions of iters at which the grid grows
+    occupancy_every: int = 50
+    occupancy_after: int = 100  # no pruning before this iteration (empty space must first be learned)
+    occupancy_threshold: float = 1e-3
+    tv_weight: float = 1e-4
+    checkpoint_every_s: float = 30.0
+    checkpoint_every: int = 500  # iterations (whichever comes first)
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["upsample_at"] = list(self.upsample_at)
+        return d
+
+
+def resolve_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise InputError("--device cuda: no CUDA device is available (use --device auto or cpu)")
+    if name not in ("cpu", "cuda"):
+        raise InputError(f"--device must be auto, cpu or cuda, got {name!r}")
+    return torch.device(name)
+
+
+def final_grid(cfg: TrainConfig, width: int) -> int:
+    return cfg.grid_final or int(min(160, max(64, round(0.8 * width / 8) * 8)))
+
+
+def grid_schedule(cfg: TrainConfig, width: int) -> list[tuple[int, int]]:
+    """[(iteration, grid size)]: sizes growing geometrically from grid_start to the final size."""
+    G = final_grid(cfg, width)
+    n = len(cfg.upsample_at)
+    sizes = [int(round(cfg.grid_start * (G / cfg.grid_start) ** ((i + 1) / n))) for i in range(n)]
+    return [(int(f * cfg.iters), s) for f, s in zip(cfg.upsample_at, sizes)]
+
+
+def make_field(cfg: TrainConfig, width: int) -> GridField:
+    return GridField(grid_size=cfg.grid_start, final_size=final_grid(cfg, width))
+
+
+def make_optimizer(field: GridField, cfg: TrainConfig) -> torch.optim.Optimizer:
+    return torch.optim.Adam([{"params": [field.grid], "lr": cfg.lr_grid},
+                             {"params": field.mlp.parameters(), "lr": cfg.lr_mlp}], betas=(0.9, 0.99))
+
+
+def learning_rate_factor(it: int, iters: int) -> float:
+    """Exponential decay to 0.1 of the start over the run."""
+    return 0.1 ** (it / max(1, iters))
+
+
+class Batch:
+    """Device tensors of the targets and ray sampling for one iteration."""
+
+    def __init__(self, tg: Targets, device: torch.device):
+        self.tg = tg
+        self.poses = torch.from_numpy(tg.poses).to(device)
+        self.values = torch.from_numpy(tg.values).to(device)
+        self.frames = torch.from_numpy(tg.frames).to(device)
+        self.resp = torch.from_numpy(tg.resp).to(device)
+        self.dark = torch.from_numpy(tg.dark).to(device)
+        self.device = device
+
+    def draw(self, n: int, gen: torch.Generator):
+        N, P = self.values.shape
+        img = torch.randint(0, N, (n,), generator=gen).to(self.device)
+        pix = torch.randint(0, P, (n,), generator=gen).to(self.device)
+        jitter = torch.rand(n, generator=gen).to(self.device)
+        return img, pix, jitter
+
+
+def method_loss(method, x, img, pix, batch: Batch, intensity: float):
+    """(loss, predicted radiance-equivalent target for PSNR, observed in radiance units)."""
+    obs = batch.values[img, pix]
+    if batch.tg.kind == "radiance":
+        return (x - obs).square().mean(), x, obs
+    frames = batch.frames[img]
+    lam = neuron.spike_rate(x, intensity, batch.resp[pix], batch.dark[pix])
+    mu = neuron.expected_count(lam, frames)
+    to_x = 256.0 / (intensity * frames)  # count -> radiance-like units, for comparable loss scales
+    if method.loss == "nll":
+        var = neuron.count_variance(mu.detach())
+        loss = ((mu - obs).square() / (6.0 * var) * to_x.square()).mean()
+    else:
+        loss = ((mu - obs) * to_x).square().mean()
+    return loss, mu * to_x, obs * to_x
+
+
+def iteration_generator(seed: int, it: int) -> torch.Generator:
+    return torch.Generator().manual_seed(int(seed) * 1_000_003 + int(it))
+
+
+def save_checkpoint(path: Path, field, opt, cfg, it, train_s, extra) -> None:
+    state = {"config": cfg.to_json(), "field": field.config(), "state": field.state_dict(),
+             "optimizer": opt.state_dict(), "iteration": it, "train_seconds": train_s, **extra}
+    with atomic_path(path) as tmp:
+        torch.save(state, tmp)
+
+
+def load_checkpoint(path: Path, device) -> dict:
+    try:
+        return torch.load(path, map_location=device, weights_only=False)
+    except Exception as exc:  # a corrupt checkpoint: say which file
+        raise InputError(f"{path}: not a readable checkpoint ({exc.__class__.__name__})") from None
+
+
+def field_from_checkpoint(ck: dict, device) -> GridField:
+    field = GridField(**ck["field"]).to(device)
+    field.load_state_dict(ck["state"])
+    return field
+
+
+def _check_resume(ck: dict, cfg: TrainConfig, path: Path) -> None:
+    old = dict(ck["config"])
+    new = cfg.to_json()
+    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final"):
+        if old.get(key) != new.get(key):
+            raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
+                             f"{new.get(key)!r}; use another --out or the same settings")
+
+
+def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print) -> Path:
+    """Train and write ``out/checkpoint.pt`` (+ ``out/config.json``); resumes if a checkpoint is there."""
+    if cfg.method not in METHODS:
+        raise InputError(f"unknown --method {cfg.method!r}; expected one of {', '.join(METHODS)}")
+    if cfg.iters < 1:
+        raise InputError(f"--iters must be >= 1, got {cfg.iters}")
+    device = resolve_device(cfg.device)
+    method = METHODS[cfg.method]
+    ds = load_dataset(cfg.dataset)
+    H, W = _resolution(ds, cfg.resolution)
+    if ds.holdout:
+        log(f"{ds.root}: no test split; holding out every 8th train view "
+            f"({len(ds.splits['test'])} views) for evaluation")
+    out.mkdir(parents=True, exist_ok=True)
+    ck_path = out / CHECKPOINT
+    tg = build_targets(ds, method, H, W, progress=progress)
+    batch = Batch(tg, device)
+    focal = ds.focal_px * W / ds.width
+    field = make_field(cfg, W).to(device)
+    opt = make_optimizer(field, cfg)
+    schedule = grid_schedule(cfg, W)
+    start, train_s = 0, 0.0
+    if ck_path.is_file():
+        ck = load_checkpoint(ck_path, device)
+        _check_resume(ck, cfg, ck_path)
+        field = field_from_checkpoint(ck, device)
+        opt = make_optimizer(field, cfg)
+        opt.load_state_dict(ck["optimizer"])
+        start, train_s = int(ck["iteration"]), float(ck["train_seconds"])
+        log(f"resuming from {ck_path} at iteration {start}")
+    write_json_atomic(out / "config.json", {**cfg.to_json(), "device_used": str(device), "height": H, "width": W,
+                                            "holdout": ds.holdout, "grid_schedule": schedule,
+                                            "intensity": ds.intensity})
+    if start >= cfg.iters:
+        log(f"{out}: already trained ({start} iterations)")
+        return ck_path
+    _loop(cfg, method, field, opt, batch, ds.intensity, (H, W, focal), schedule, start, train_s, out, progress)
+    return ck_path
+
+
+def _resolution(ds, res: int) -> tuple[int, int]:
+    if not res or res == ds.width:
+        return ds.height, ds.width
+    if res < 8 or ds.width % res or ds.height % (ds.width // res):
+        raise InputError(f"--resolution {res}: must divide the dataset width {ds.width} by an integer factor")
+    f = ds.width // res
+    return ds.height // f, res
+
+
+def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress):
+    H, W, focal = cam
+    ck_path = out / CHECKPOINT
+    extra = {"height": H, "width": W, "focal_px": focal, "intensity": intensity}
+    last_save = time.perf_counter()
+    bar = tqdm(range(start, cfg.iters), initial=start, total=cfg.iters, desc=f"train {cfg.method}",
+               disable=not progress, unit="it")
+    t0 = time.perf_counter()
+    for it in bar:
+        field, opt = _grow(field, opt, cfg, schedule, it)
+        if it >= cfg.occupancy_after and it % cfg.occupancy_every == 0:
+            field.update_occupancy(cfg.occupancy_threshold)
+        gen = iteration_generator(cfg.seed, it)
+        img, pix, jitter = batch.draw(cfg.batch_rays, gen)
+        o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
+        x, _ = render_rays(field, o, d, jitter)
+        loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
+        if cfg.tv_weight > 0:
+            loss = loss + cfg.tv_weight * field.tv_loss(gen)
+        if not torch.isfinite(loss):
+            bar.close()
+            raise TrainError(f"loss became {float(loss)} at iteration {it}; stopped. The last good checkpoint "
+                             f"{ck_path} is kept" + ("" if ck_path.is_file() else " (none was written yet)"))
+        for g, base in zip(opt.param_groups, (cfg.lr_grid, cfg.lr_mlp)):
+            g["lr"] = base * learning_rate_factor(it, cfg.iters)
+        opt.zero_grad(set_to_none=True)
+        loss.backward()
+        opt.step()
+        if it % 10 == 0:
+            mse = float((pred.detach().clamp(0, 1) - obs.clamp(0, 1)).square().mean())
+            bar.set_postfix(loss=f"{float(loss):.4g}", psnr=f"{-10 * math.log10(max(mse, 1e-10)):.2f}")
+        now = time.perf_counter()
+        done = it + 1
+        if done == cfg.iters or done % cfg.checkpoint_every == 0 or now - last_save > cfg.checkpoint_every_s:
+            save_checkpoint(ck_path, field, opt, cfg, done, train_s + now - t0, extra)
+            last_save = now
+    bar.close()
+
+
+def _grow(field, opt, cfg, schedule, it):
+    """Upsample the grid where the schedule says (a new optimizer state for the grid)."""
+    for at, size in schedule:
+        if it == at and field.grid_size < size:
+            field.upsample(size)
+            if it >= cfg.occupancy_after:
+                field.update_occupancy(cfg.occupancy_threshold)
+            old = opt.state_dict()
+            opt = make_optimizer(field, cfg)
+            mlp_state = {k: v for k, v in old["state"].items() if k != 0}
+            opt.load_state_dict({"state": mlp_state, "param_groups": old["param_groups"]})
+    return field, opt
