@@ -18,7 +18,7 @@ import bpy
 from bpy.props import FloatProperty, IntProperty, PointerProperty, StringProperty
 
 DEFAULTS = {"intensities": "16,32,64", "resolution": 400, "views_train": 100, "views_val": 100,
-            "views_test": 200, "subframes": 16, "frames": 256, "motion_deg": 1.0, "samples": 4, "seed": 0}
+            "views_test": 200, "subframes": 16, "frames": 256, "motion_deg": 1.0, "samples": 8, "seed": 0}
 
 
 def _properties():

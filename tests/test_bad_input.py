@@ -558,11 +558,7 @@ def check_one_line(code, err, needle):
     assert needle in lines[0], f"{needle!r} not named in {lines[0]!r}"
 
 
-KNOWN_GAPS = {
-    # Sensor.__post_init__ raises a one-line InputError that does not name the file;
-    # sensorfile.load_sensor (not this engineer's file) should re-raise it with the path.
-    "sensor_json_bad_parameter": "load_sensor does not name the sensor file when a parameter is invalid",
-}
+KNOWN_GAPS: dict = {}  # cases that document a known gap (strict xfail); none open
 
 
 @pytest.mark.parametrize("name", [pytest.param(n, marks=pytest.mark.xfail(reason=KNOWN_GAPS[n], strict=True))
@@ -600,6 +596,27 @@ def test_render_blend_not_a_blend_file(work):
     proc = run_spikegen("render", "--blend", work / "notes.blend", "--intensity", "32", "--out", work / "out",
                         timeout=120)
     check_one_line(proc.returncode, proc.stderr, "notes.blend")
+    assert snapshot(work) == before
+
+
+RENDER_LATE_CHECKS = {  # options `render` only checks when it converts, after rendering every view
+    "render_workers_zero": (["--workers", "0"], "--workers"),
+    "render_sensor_unknown": (["--sensor", "bogus"], "bogus"),
+}
+
+
+@pytest.mark.blender
+@pytest.mark.xfail(strict=True, reason="spikegen render validates --workers/--sensor/--scheduler only after "
+                                       "rendering (cli_render should check them before Blender starts)")
+@pytest.mark.parametrize("name", sorted(RENDER_LATE_CHECKS))
+def test_render_checks_conversion_options_before_rendering(name, work, capsys):
+    pytest.importorskip("bpy")
+    extra, needle = RENDER_LATE_CHECKS[name]
+    before = snapshot(work)
+    code, out, err = run_main(["render", "--scene", "lego", "--views", "1,0,0", "--resolution", "16",
+                               "--subframes", "1", "--frames", "8", "--engine", "workbench", "--intensity", "32",
+                               "--out", work / "out", *extra], capsys)
+    check_one_line(code, err, needle)
     assert snapshot(work) == before
 
 

@@ -123,3 +123,48 @@ def test_dask_resumes_a_partial_folder(sources, cluster, tmp_path):
     assert _convert(src, partial, "--scheduler", address) == single
     assert sum(_executed(client).values()) - before >= 2 * VIEWS * 2  # every view was visited on a worker
     assert (partial / sorted(p.name for p in partial.iterdir())[0] / "train/r_0.dat").stat().st_ino == kept
+
+
+def test_a_bad_view_on_a_worker_is_one_line(sources, cluster, tmp_path):
+    """An input error raised on a Dask worker reaches the user as one line naming the file."""
+    import numpy as np
+
+    from spikegen.spikeio import write_exr
+
+    address, client = cluster
+    src = tmp_path / "render"
+    shutil.copytree(sources["render"], src)
+    bad = np.full((16, 16, 4), 0.5, np.float32)
+    bad[2, 2, 0] = np.nan
+    write_exr(src / "train/r_2_sub03.exr", bad)
+    proc = run_spikegen("convert", src, "--out", tmp_path / "out", "--intensity", "24", "--frames", "64",
+                        "--scheduler", address, timeout=120)
+    assert proc.returncode == 2, proc.stderr
+    lines = proc.stderr.splitlines()
+    assert len(lines) == 1 and "r_2_sub03.exr" in lines[0] and "NaN" in lines[0], lines
+    assert not list((tmp_path / "out").rglob("*.part")) and not list((tmp_path / "out").rglob("manifest.json"))
+
+
+def _slow_or_failing(task):
+    if task == 0:
+        from spikegen.errors import InputError
+
+        raise InputError("task 0: bad input")
+    time.sleep(0.3)
+    Path(task_marker_dir(), f"done_{task}").touch()
+    return task
+
+
+def task_marker_dir() -> str:
+    return os.environ["SPIKEGEN_TEST_MARKERS"]
+
+
+def test_first_failure_cancels_the_views_not_started(tmp_path, monkeypatch):
+    from spikegen.errors import InputError
+    from spikegen.parallel import run_tasks
+
+    monkeypatch.setenv("SPIKEGEN_TEST_MARKERS", str(tmp_path))
+    with pytest.raises(InputError, match="task 0"):
+        run_tasks(_slow_or_failing, list(range(30)), workers=2, progress=False)
+    done = len(list(tmp_path.glob("done_*")))
+    assert done < 10, done  # the 29 others (0.3 s each) did not all run after the failure

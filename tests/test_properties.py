@@ -165,8 +165,6 @@ def test_same_seed_same_bits(data):
     np.testing.assert_array_equal(a, b)
 
 
-@pytest.mark.xfail(strict=True, reason="sensor.crosstalk divides by a zero neighbour count on a 1 x 1 image "
-                                       "(NaN charge; with shot noise numpy raises ValueError)")
 def test_crosstalk_on_a_single_pixel():
     s = simulate(np.ones((1, 1)), 32.0, Sensor(name="ct", crosstalk_fraction=0.1, electrons=4.0), frames=16, seed=0)
     assert s.shape == (16, 1, 1)

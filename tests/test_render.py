@@ -170,3 +170,15 @@ def test_blend_file_is_rendered_under_its_name(tmp_path):
     doc = json.loads((tmp_path / "o" / "myscene_render" / "render.json").read_text())
     assert doc["scene"] == "myscene" and doc["source"].startswith("blend:")
     assert (tmp_path / "o" / "myscene_i16" / "manifest.json").is_file()
+
+
+def test_thread_count_does_not_change_the_bytes(tmp_path):
+    scene, camera = build_bpy_scene(build_scene("materials"))
+    pose = cm.make_views("train", 1)[0].pose
+    data = []
+    for threads in (1, 2):
+        r = BlenderRenderer(scene, camera, RenderSettings(48, 48, samples=4, threads=threads))
+        r.set_view_seed(7)
+        r.render_exr(pose, tmp_path / f"t{threads}.exr")
+        data.append((tmp_path / f"t{threads}.exr").read_bytes())
+    assert data[0] == data[1]

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import json
 import os
+import shutil
 import signal
 import subprocess
 import time
@@ -150,3 +151,97 @@ def test_leftover_temporaries_are_removed_on_resume(reference, tmp_path):
     assert run_spikegen(*convert_args(src, tmp_path / "out")).returncode == 0
     assert tree(tmp_path / "out") == ref_tree
     assert (first / "train/r_4.dat").stat().st_ino == keep
+
+
+def test_rerun_over_a_finished_folder_restores_changed_files(reference, tmp_path):
+    """Files changed after the dataset was finished (the manifest is now stale for them; same
+    sizes, so only their hashes tell) are made again from their seeds; the others are kept."""
+    src, ref_out, ref_tree, _ = reference
+    out = tmp_path / "out"
+    shutil.copytree(ref_out, out)
+    folder = sorted(out.iterdir())[0]
+    for rel in ("train/r_0.dat", "test/r_2.png"):
+        p = folder / rel
+        data = bytearray(p.read_bytes())
+        data[len(data) // 3] ^= 0x04
+        p.write_bytes(bytes(data))
+    assert run_spikegen("verify", folder).returncode != 0
+    keep = (folder / "train/r_1.dat").stat().st_ino
+    assert run_spikegen(*convert_args(src, out)).returncode == 0
+    assert tree(out) == ref_tree
+    assert (folder / "train/r_1.dat").stat().st_ino == keep
+
+
+# ---------------------------------------------------------------------- spikegen render
+RENDER_ARGS = ["render", "--scene", "lego", "--views", "4,0,2", "--resolution", "32", "--subframes", "2",
+               "--frames", "32", "--engine", "cycles", "--samples", "1", "--png-samples", "1",
+               "--intensity", "16", "--intensity", "32", "--seed", "2"]
+
+
+def count_units(out: Path) -> int:
+    """Images of the render folder plus spike files of the datasets, under final names."""
+    if not out.exists():
+        return 0
+    return sum(1 for p in out.rglob("*") if p.suffix in (".exr", ".png", ".dat") and not p.name.startswith("."))
+
+
+def rendered_views(out: Path) -> dict:
+    """{view file_path: inodes of its PNG and EXRs} for views listed in render.json."""
+    doc_path = next(out.glob("*_render/render.json"), None)
+    if doc_path is None:
+        return {}
+    doc = json.loads(doc_path.read_text())  # always complete JSON (written atomically)
+    views = {}
+    for entries in doc["splits"].values():
+        for e in entries:
+            base = doc_path.parent / e["file_path"]
+            files = [Path(f"{base}.png")] + sorted(base.parent.glob(base.name + "_sub*.exr"))
+            views[e["file_path"]] = [f.stat().st_ino for f in files]
+    return views
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_render_sigkill_at_random_moments_then_resume(tmp_path):
+    pytest.importorskip("bpy")
+    ref = tmp_path / "ref"
+    t0 = time.perf_counter()
+    proc = run_spikegen(*RENDER_ARGS, "--out", ref, timeout=300)
+    duration = time.perf_counter() - t0
+    assert proc.returncode == 0, proc.stderr
+    ref_tree = tree(ref)
+    total = count_units(ref)
+    out = tmp_path / "out"
+    args = RENDER_ARGS + ["--out", out]
+    rng = np.random.default_rng(KILL_SEED + 1)
+    targets = [0] + sorted(rng.choice(np.arange(1, total), 4, replace=False).tolist())
+    extras = [float(rng.uniform(0.0, 1.0))] + rng.uniform(0.0, 2.0 * duration / total, 4).tolist()
+    history = []
+    for round_, (target, extra) in enumerate(zip(targets, extras)):
+        before = rendered_views(out)
+        proc = subprocess.Popen(spikegen_cmd(*args), stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+                                env=cli_env(), start_new_session=True)
+        while proc.poll() is None and count_units(out) < target:
+            time.sleep(0.005)
+        try:
+            proc.wait(timeout=extra)
+            killed = False
+        except subprocess.TimeoutExpired:
+            os.killpg(proc.pid, signal.SIGKILL)
+            proc.wait()
+            killed = True
+        for rel, digest in final_files(out).items():
+            if not rel.endswith("render.json"):  # render.json grows view by view
+                assert ref_tree.get(rel) == digest, f"round {round_}: {rel} differs from an uninterrupted run"
+        after = rendered_views(out)
+        for view, inodes in before.items():
+            assert after.get(view) == inodes, f"round {round_}: rendered view {view} was rendered again"
+        history.append((target, killed, count_units(out)))
+    assert sum(1 for t, k, n in history if k and 0 < n < total) >= 2, history
+    proc = run_spikegen(*args, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    got = tree(out)
+    render_leftovers = sorted(k for k in got if "_render/" in k and k.endswith(".part"))
+    assert {k: v for k, v in got.items() if k not in render_leftovers} == ref_tree, history
+    if render_leftovers:  # known gap of spikegen.render (not of convert): reported, not hidden
+        pytest.xfail(f"the render folder keeps temporaries of writes killed in an earlier run: {render_leftovers}")

@@ -232,12 +232,13 @@ def _load_view(src_kind: str, view: View, resolution: int | None):
 
 
 def convert_view(task: dict) -> str:
-    """Make one view's ``r_N.png`` and ``r_N.dat`` (skipped if both exist at the right size)."""
+    """Make one view's ``r_N.png`` and ``r_N.dat`` (skipped if both exist at the right size and,
+    in a finished folder, still hold the bytes its manifest records)."""
     out: Path = task["out"]
     view: View = task["view"]
     dat = out / (view.file_path[2:] + ".dat")
     png = out / (view.file_path[2:] + ".png")
-    if dat.is_file() and png.is_file() and dat.stat().st_size == task["dat_bytes"]:
+    if dat.is_file() and png.is_file() and dat.stat().st_size == task["dat_bytes"] and _as_recorded(task, png, dat):
         return "skipped"
     x, gt = _load_view(task["kind"], view, task["resolution"])
     seed = view_seed(task["seed"], task["name"], view.split, view.index, task["intensity"])
@@ -250,6 +251,27 @@ def convert_view(task: dict) -> str:
         write_png(png, gt)
     write_dat(dat, spikes)
     return "written"
+
+
+def _as_recorded(task: dict, *paths: Path) -> bool:
+    """False if the manifest of a finished folder records other bytes for one of ``paths``: a
+    file changed after the dataset was finished is made again (from its seed, so the same bytes)."""
+    recorded = task.get("recorded") or {}
+    for p in paths:
+        digest = recorded.get(p.relative_to(task["out"]).as_posix())
+        if digest is not None and sha256_file(p) != digest:
+            return False
+    return True
+
+
+def _recorded(out: Path) -> dict:
+    """{relative path: sha256} listed by ``out/manifest.json`` ({} if the folder is not finished)."""
+    mpath = out / "manifest.json"
+    entries = _read_json(mpath).get("files") if mpath.is_file() else None
+    if not isinstance(entries, list):
+        return {}
+    return {e["path"]: e["sha256"] for e in entries
+            if isinstance(e, dict) and isinstance(e.get("path"), str) and isinstance(e.get("sha256"), str)}
 
 
 # ---------------------------------------------------------------------- whole dataset
@@ -307,9 +329,12 @@ def _convert_level(src, out_dir, level, sensor_name, sensor_obj, frames, seed, r
               "width": width, "height": height, "seed": int(seed), "readout_hz": READOUT_HZ,
               "render": src.info}
     _claim(out, params)
+    recorded = _recorded(out)
     tasks = [{"out": out, "view": v, "kind": src.kind, "resolution": resolution, "seed": int(seed),
               "name": src.name, "intensity": level, "frames": int(frames),
               "dat_bytes": int(frames) * width * height // 8,
+              "recorded": {k: recorded[k] for k in (v.file_path[2:] + ".png", v.file_path[2:] + ".dat")
+                           if k in recorded},
               "threads": (os.cpu_count() or 1) if workers == 1 and client is None else 1} for v in src.views]
     run_tasks(convert_view, tasks, workers=workers, scheduler=client, progress=progress,
               desc=f"{out.name}", shared={"sensor": sensor_obj})

@@ -46,7 +46,7 @@ class RenderJob:
     frames: int = 256
     motion_deg: float = DEFAULT_MOTION_DEG
     engine: str = "cycles"
-    samples: int = 4
+    samples: int = 8  # chosen by measurement: docs/rendering.md
     png_samples: int = 16
     seed: int = 0
     camera_angle_x: float = CAMERA_ANGLE_X

@@ -591,7 +591,9 @@ def crosstalk(xt: np.ndarray, fraction: float, top_edge=True, bottom_edge=True) 
     count[:, 1:] += 1
     total[..., :, :-1] += xt[..., :, 1:]
     count[:, :-1] += 1
-    return (1.0 - fraction) * xt + fraction * total / count
+    lonely = count == 0  # a 1-pixel-wide image: no neighbours, nothing to mix
+    mean = np.where(lonely, xt, total / np.maximum(count, 1))
+    return (1.0 - fraction) * xt + fraction * mean
 
 
 def shot_noise(charge: np.ndarray, electrons: float, rng: np.random.Generator) -> np.ndarray:

@@ -74,5 +74,5 @@ def load_sensor(path) -> Sensor:
             raise InputError(f"{npz}: cannot read the sensor maps named by {path.name} ({exc})") from None
     try:
         return Sensor(**params, **maps, map_model=doc.get("map_model"), notes=doc.get("notes") or {})
-    except TypeError as exc:
+    except (TypeError, ValueError, InputError) as exc:
         raise InputError(f"{path}: bad sensor parameters ({exc})") from None

@@ -337,9 +337,8 @@ def write_exr(path, image: np.ndarray) -> None:
     if name is None:
         raise InputError(f"{path}: EXR writer needs [H, W, 3|4], got {arr.shape}")
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    with atomic_path(path) as tmp:
-        OpenEXR.File(header, {name: arr}).write(str(tmp) + ".exr")
-        os.replace(str(tmp) + ".exr", tmp)
+    with atomic_path(path) as tmp:  # OpenEXR does not need an .exr suffix: one temporary, cleaned on failure
+        OpenEXR.File(header, {name: arr}).write(str(tmp))
 
 
 def exr_to_radiance(arr: np.ndarray, background: float = 1.0) -> np.ndarray:

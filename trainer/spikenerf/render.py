@@ -38,36 +38,49 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.
     """Luminance ``x [n]`` and opacity ``acc [n]`` of rays, alpha-compositing samples every half voxel.
 
     ``jitter [n]`` in [0, 1) offsets each ray's samples (training); None samples at 0.5.
-    Samples outside the box or in unoccupied cells are skipped (alpha 0).
+    Only samples inside the occupied box and in occupied cells are evaluated: they are kept
+    packed (sorted by ray) and composited with a segmented cumulative sum, so empty space
+    costs neither field queries nor autograd memory.
     """
     n = origins.shape[0]
     step = field.step_ratio * field.voxel
+    idx, ray_of, pts = _occupied_samples(field, origins, dirs, step, jitter)
+    if idx.numel() == 0:
+        zero = origins.new_zeros(n) + 0.0 * field.grid.sum()  # keeps the graph connected
+        return zero + background, zero
+    sigma, x = field.query(pts, dirs[ray_of])
+    log_t = -(sigma * (step / field.ref_voxel)).clamp(max=30.0)  # log(1 - alpha) of each sample
+    trans = torch.exp(_exclusive_segment_cumsum(log_t, ray_of, n))
+    w = (1 - torch.exp(log_t)) * trans
+    acc = origins.new_zeros(n).index_add(0, ray_of, w)
+    lum = origins.new_zeros(n).index_add(0, ray_of, w * x)
+    return lum + (1 - acc) * background, acc
+
+
+@torch.no_grad()
+def _occupied_samples(field, origins, dirs, step, jitter):
+    """Packed samples: (flat index [m], ray [m], point [m, 3]), sorted by ray then depth."""
+    n = origins.shape[0]
     t_in, t_out = box_interval(origins, dirs, field.box)
     span = (t_out - t_in).clamp(min=0)
     n_samp = max(1, int(torch.ceil(span.max() / step).item()))
-    # (a sample grid that starts at each ray's entry; 'valid' marks samples inside the box)
     off = torch.full((n,), 0.5, device=origins.device) if jitter is None else jitter
-    t = t_in[:, None] + step * (torch.arange(n_samp, device=origins.device)[None, :] + off[:, None])  # [n, S]
-    pts = origins[:, None, :] + t[..., None] * dirs[:, None, :]
-    valid = t < t_out[:, None]
-    flat_pts = pts.view(-1, 3)
-    keep = valid.view(-1).clone()
-    idx = keep.nonzero().squeeze(-1)
-    occ = field.occupied(flat_pts[idx])
-    idx = idx[occ]
-    alpha = torch.zeros(n * n_samp, device=origins.device, dtype=origins.dtype)
-    color = torch.zeros_like(alpha)
-    if idx.numel():
-        ray_of = torch.div(idx, n_samp, rounding_mode="floor")
-        sigma, x = field.query(flat_pts[idx], dirs[ray_of])
-        a = 1 - torch.exp(-sigma * (step / field.ref_voxel))
-        alpha = alpha.index_put((idx,), a)
-        color = color.index_put((idx,), x)
-    alpha, color = alpha.view(n, n_samp), color.view(n, n_samp)
-    trans = torch.cumprod(torch.cat([torch.ones_like(alpha[:, :1]), 1 - alpha[:, :-1] + 1e-10], dim=1), dim=1)
-    w = alpha * trans
-    acc = w.sum(dim=1)
-    return (w * color).sum(dim=1) + (1 - acc) * background, acc
+    k = torch.arange(n_samp, device=origins.device, dtype=origins.dtype)
+    t = t_in[:, None] + step * (k[None, :] + off[:, None])  # [n, S]
+    idx = (t < t_out[:, None]).view(-1).nonzero().squeeze(-1)
+    ray_of = torch.div(idx, n_samp, rounding_mode="floor")
+    pts = origins[ray_of] + t.view(-1)[idx, None] * dirs[ray_of]
+    occ = field.occupied(pts)
+    return idx[occ], ray_of[occ], pts[occ]
+
+
+def _exclusive_segment_cumsum(v: torch.Tensor, seg: torch.Tensor, n_seg: int) -> torch.Tensor:
+    """Sum of the earlier values of the same segment, for values ``v [m]`` sorted by ``seg [m]``."""
+    c = torch.cumsum(v.double(), dim=0)
+    excl = c - v.double()
+    counts = torch.bincount(seg, minlength=n_seg)
+    first = torch.cumsum(counts, dim=0) - counts  # index of each segment's first value
+    return (excl - excl[first[seg]]).to(v.dtype)
 
 
 @torch.no_grad()

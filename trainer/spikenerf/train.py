@@ -48,10 +48,10 @@ class TrainConfig:
     lr_mlp: float = 2e-3
     grid_start: int = 32
     grid_final: int = 0  # 0 = chosen from the image size
-    upsample_at: tuple = (0.15, 0.3, 0.45)  # fractions of iters at which the grid grows
+    upsample_at: tuple = (0.1, 0.2, 0.3)  # fractions of iters at which the grid grows
     occupancy_every: int = 50
     occupancy_after: int = 100  # no pruning before this iteration (empty space must first be learned)
-    occupancy_threshold: float = 1e-3
+    occupancy_threshold: float = 5e-3
     tv_weight: float = 1e-4
     checkpoint_every_s: float = 30.0
     checkpoint_every: int = 500  # iterations (whichever comes first)
@@ -168,8 +168,11 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path) -> None:
                              f"{new.get(key)!r}; use another --out or the same settings")
 
 
-def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print) -> Path:
-    """Train and write ``out/checkpoint.pt`` (+ ``out/config.json``); resumes if a checkpoint is there."""
+def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at: int | None = None) -> Path:
+    """Train and write ``out/checkpoint.pt`` (+ ``out/config.json``); resumes if a checkpoint is there.
+
+    ``stop_at``: end this session after that iteration (with a checkpoint), as an interruption would.
+    """
     if cfg.method not in METHODS:
         raise InputError(f"unknown --method {cfg.method!r}; expected one of {', '.join(METHODS)}")
     if cfg.iters < 1:
@@ -204,7 +207,8 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print) -> Path
     if start >= cfg.iters:
         log(f"{out}: already trained ({start} iterations)")
         return ck_path
-    _loop(cfg, method, field, opt, batch, ds.intensity, (H, W, focal), schedule, start, train_s, out, progress)
+    _loop(cfg, method, field, opt, batch, ds.intensity, (H, W, focal), schedule, start, train_s, out, progress,
+          stop_at or cfg.iters)
     return ck_path
 
 
@@ -217,7 +221,7 @@ def _resolution(ds, res: int) -> tuple[int, int]:
     return ds.height // f, res
 
 
-def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress):
+def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress, stop_at):
     H, W, focal = cam
     ck_path = out / CHECKPOINT
     extra = {"height": H, "width": W, "focal_px": focal, "intensity": intensity}
@@ -226,6 +230,8 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
                disable=not progress, unit="it")
     t0 = time.perf_counter()
     for it in bar:
+        if it >= stop_at:
+            break
         field, opt = _grow(field, opt, cfg, schedule, it)
         if it >= cfg.occupancy_after and it % cfg.occupancy_every == 0:
             field.update_occupancy(cfg.occupancy_threshold)
@@ -238,7 +244,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
             loss = loss + cfg.tv_weight * field.tv_loss(gen)
         if not torch.isfinite(loss):
             bar.close()
-            raise TrainError(f"loss became {float(loss)} at iteration {it}; stopped. The last good checkpoint "
+            raise TrainError(f"loss became {'NaN' if torch.isnan(loss) else 'infinite'} at iteration {it}; stopped. The last good checkpoint "
                              f"{ck_path} is kept" + ("" if ck_path.is_file() else " (none was written yet)"))
         for g, base in zip(opt.param_groups, (cfg.lr_grid, cfg.lr_mlp)):
             g["lr"] = base * learning_rate_factor(it, cfg.iters)
@@ -247,13 +253,24 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         opt.step()
         if it % 10 == 0:
             mse = float((pred.detach().clamp(0, 1) - obs.clamp(0, 1)).square().mean())
-            bar.set_postfix(loss=f"{float(loss):.4g}", psnr=f"{-10 * math.log10(max(mse, 1e-10)):.2f}")
+            bar.set_postfix(loss=f"{float(loss):.4g}", psnr=f"{-10 * math.log10(max(mse, 1e-10)):.2f}",
+                            grid=field.grid_size, occ=f"{float(field.occupancy.float().mean()):.3f}")
         now = time.perf_counter()
         done = it + 1
-        if done == cfg.iters or done % cfg.checkpoint_every == 0 or now - last_save > cfg.checkpoint_every_s:
+        if done in (cfg.iters, stop_at) or done % cfg.checkpoint_every == 0 or now - last_save > cfg.checkpoint_every_s:
+            _check_finite(field, it, ck_path, bar)
             save_checkpoint(ck_path, field, opt, cfg, done, train_s + now - t0, extra)
             last_save = now
     bar.close()
+
+
+def _check_finite(field, it, ck_path, bar) -> None:
+    """Never overwrite the last good checkpoint with a field that holds NaN or infinity."""
+    if all(bool(torch.isfinite(p).all()) for p in field.parameters()):
+        return
+    bar.close()
+    raise TrainError(f"the field became non-finite (NaN/inf) at iteration {it}; stopped. The last good "
+                     f"checkpoint {ck_path} is kept" + ("" if ck_path.is_file() else " (none was written yet)"))
 
 
 def _grow(field, opt, cfg, schedule, it):

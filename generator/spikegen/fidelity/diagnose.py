@@ -50,6 +50,7 @@ SIM_SEED = 20240617  # seed of the diagnosis' own simulations (the measured stre
 GAMMA_RANGE = (0.25, 4.0)
 DELTA_MAX = 6.0
 MIN_SPIKES = 3
+MODEL_VARIANCE_SHARE = 0.1  # shot noise must add this much to the model's own interval variance
 MIN_COHERENCE = 0.9  # flicker: agreement of the sinusoid across four pixel groups (1 = identical)
 QUANTISED_MIN_ISI = 8.0  # noise-free reset-to-zero: intervals shorter than this say too little
 
@@ -408,6 +409,7 @@ def _fit_flicker(ctx: _Context, model: dict):
         return wts @ (xk[:, m] * scale[m]).sum(axis=1)
     fit = stats.fit_sine(stats.population_signal(ctx.spikes[:Tf], mask), light_of(mask),
                          min_period=6.0, max_period=2.0 * ctx.spikes.shape[0])
+    fit.mask, fit.light = mask, light_of(mask)
     # coherence: flicker modulates the light of every pixel in phase and by the same depth; the
     # beat of regular pixel trains depends on their rate. Four brightness quartiles must agree.
     edges = np.quantile(lam[mask], [0.25, 0.5, 0.75])
@@ -501,6 +503,8 @@ def _effects_and_sensor(ctx: _Context, model: dict):
     found["crosstalk"] = _crosstalk_effect(ctx, model)
     found["flicker"] = _flicker_effect(ctx, model)
     found["refractory"], found["reset_to_zero"] = _readout_effects(ctx, model)
+    if found["flicker"].detected:
+        _check_flicker_against_model(ctx, model, found)
     deterministic = _build_sensor(ctx, model, found, electrons=0.0)
     found["shot_noise"] = _shot_effect(ctx, model, deterministic)
     extended = _build_sensor(ctx, model, found, electrons=found["shot_noise"].parameters.get("electrons") or 0.0
@@ -628,6 +632,22 @@ def _flicker_effect(ctx, model):
     return eff
 
 
+def _check_flicker_against_model(ctx, model, found):
+    """A readout with a dead time or a reset to zero makes the population signal ring at the
+    rates of its pixels. Simulate the fitted model without flicker: if it shows the same line,
+    the line is the readout's, not the light's."""
+    fl = model["flicker"]
+    flags = {k: v for k, v in found.items() if k != "flicker"}
+    sensor = _build_sensor(ctx, model, flags, electrons=0.0)
+    sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.spikes.shape[0], seed=SIM_SEED)[:ctx.Tf]
+    own = abs(stats.sine_at(stats.population_signal(sim, fl.mask), fl.light, 1.0 / fl.period_frames))
+    eff = found["flicker"]
+    eff.parameters["model_depth_at_period"] = own
+    if fl.depth < 2.0 * own or fl.depth - own < GATES["flicker"][0]:
+        eff.detected = False
+        eff.note = "the fitted model without flicker shows the same line (readout ringing)"
+
+
 def _readout_effects(ctx, model):
     """Refractory frames and reset-to-zero from the interval offset and interval constancy."""
     delta = model["delta"]
@@ -650,7 +670,8 @@ def _shot_effect(ctx, model, deterministic: Sensor):
     T = ctx.spikes.shape[0]
     sim = simulate(ctx.X, ctx.intensity, deterministic, frames=T, seed=SIM_SEED)[:ctx.Tf]
     ps = stats.pixel_stats(sim)
-    vm, vs = stats.excess_interval_var(ctx.meas), stats.excess_interval_var(ps)
+    noisy = ctx.meas.isi_var >= 2.0  # the same estimator for both streams, pixel by pixel
+    vm, vs = stats.excess_interval_var(ctx.meas, noisy), stats.excess_interval_var(ps, noisy)
     refr = deterministic.refractory_frames
     with np.errstate(all="ignore"):
         lam = 1.0 / (ctx.meas.isi_mean - refr)
@@ -671,6 +692,12 @@ def _shot_effect(ctx, model, deterministic: Sensor):
     se = float(np.sqrt(np.sum(wts ** 2 * (y - inv) ** 2)) / np.sum(wts))
     electrons = 1.0 / inv if inv > 0 else math.inf
     eff = _make("shot_noise", electrons if inv > 0 else None, inv / max(se, 1e-15), {"electrons": electrons if inv > 0 else None})
+    # flicker (or motion) the model reproduces makes intervals vary like 1 / lambda^2 too; an
+    # excess below 10 % of that deterministic variance is within the error of the fitted modulation
+    model_level = float(np.sum(wts * np.maximum(vs[ok], 0.0) * lam[ok] ** 2) / np.sum(wts))
+    if eff.detected and inv < MODEL_VARIANCE_SHARE * model_level:
+        eff.detected = False
+        eff.note = "interval variance within the error of the fitted deterministic modulation (flicker)"
     return eff
 
 

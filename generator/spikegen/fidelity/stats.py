@@ -114,7 +114,7 @@ def window_rate(spikes: np.ndarray) -> np.ndarray:
         return np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
 
 
-def excess_interval_var(meas: PixelStats) -> np.ndarray:
+def excess_interval_var(meas: PixelStats, noisy: np.ndarray | None = None) -> np.ndarray:
     """Interval variance beyond frame quantisation, ``[P]`` frames**2 (NaN where unknown).
 
     Where the intervals vary by more than a frame (``isi_var >= 2``) the quantisation errors
@@ -122,10 +122,12 @@ def excess_interval_var(meas: PixelStats) -> np.ndarray:
     Otherwise (regular pixels, many spikes) ``(span_var - isi_var) / (MAX_SPAN - 1)``: for
     independent intervals of variance v, ``span_var = MAX_SPAN v + q`` and ``isi_var = v + q``
     share the quantisation term q. (The span form is biased low for pixels with few spikes,
-    whose overlapping spans are few, hence the split.)
+    whose overlapping spans are few, hence the split.) ``noisy [P]`` (default
+    ``isi_var >= 2``) chooses the form per pixel, so that two streams can be compared alike.
     """
     span = (meas.span_var - meas.isi_var) / (MAX_SPAN - 1)
-    return np.where(meas.isi_var >= 2.0, meas.isi_var - 1.0 / 6.0, span)
+    noisy = meas.isi_var >= 2.0 if noisy is None else noisy
+    return np.where(noisy, meas.isi_var - 1.0 / 6.0, span)
 
 
 # ---------------------------------------------------------------------- population signal
@@ -144,6 +146,8 @@ class SineFit:
     z: float  # amplitude over its standard error
     residual_sd: float
     coherence: float = 1.0  # set by the caller: agreement across pixel groups
+    mask: np.ndarray | None = None  # set by the caller: the pixels of the population signal
+    light: np.ndarray | None = None  # and their expected light spikes per frame
 
 
 def sine_at(signal: np.ndarray, light: np.ndarray, freq: float) -> complex:

@@ -8,7 +8,7 @@ from .description import Material, SceneDescription
 
 HEAD = np.array([0.0, 0.0, 2.2])  # centre of the grill
 GRILL_R = 0.55
-WIRE_R = 0.006  # grill wire radius: a fraction of a pixel wide at 400 x 400
+WIRE_R = 0.006  # grill wire radius (before fitting): wires about 1.2 px wide at 400 x 400
 
 
 def grill() -> list:

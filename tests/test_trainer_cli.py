@@ -1,0 +1,138 @@
+"""spikenerf train / eval end to end on a tiny converted dataset: learning, metrics.json,
+resume, NaN handling, bad input."""
+import json
+import math
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.torch
+
+from click.testing import CliRunner  # noqa: E402
+
+from spikegen.spikeio import write_json_atomic, write_png  # noqa: E402
+from spikenerf.cli import main  # noqa: E402
+from spikenerf.train import TrainConfig, TrainError, train  # noqa: E402
+
+SIZE = 32
+ANGLE_X = 0.6911112070083618
+RADIUS = 0.9  # a grey sphere at the origin: every camera that looks at the origin sees a centred disc
+
+
+def _pose(theta, phi, dist=4.0311):
+    c = np.array([math.cos(phi) * math.cos(theta), math.cos(phi) * math.sin(theta), math.sin(phi)]) * dist
+    z = c / np.linalg.norm(c)
+    x = np.cross([0.0, 0.0, 1.0], z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = x, y, z, c
+    return m
+
+
+def _sphere_png(path, dist=4.0311):
+    focal = 0.5 * SIZE / math.tan(0.5 * ANGLE_X)
+    r_px = focal * math.tan(math.asin(RADIUS / dist))
+    j, i = np.mgrid[0:SIZE, 0:SIZE] + 0.5
+    alpha = np.clip(r_px - np.hypot(i - SIZE / 2, j - SIZE / 2) + 0.5, 0, 1)
+    rgba = np.zeros((SIZE, SIZE, 4))
+    rgba[..., :3] = 0.35
+    rgba[..., 3] = alpha
+    write_png(path, rgba)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from spikegen.dataset import convert
+
+    src = tmp_path_factory.mktemp("sphere")
+    frames = []
+    for k in range(16):
+        name = f"./train/r_{k}"
+        _sphere_png(src / f"train/r_{k}.png")
+        frames.append({"file_path": name, "transform_matrix": _pose(0.4 * k, 0.2 + 0.05 * (k % 5)).tolist()})
+    write_json_atomic(src / "transforms_train.json", {"camera_angle_x": ANGLE_X, "frames": frames})
+    out = tmp_path_factory.mktemp("ds")
+    (folder,) = convert(src, out, [64], sensor="paper", progress=False)
+    return folder
+
+
+def _cfg(dataset, **kw):
+    base = dict(dataset=str(dataset), iters=120, device="cpu", batch_rays=512, grid_start=16, grid_final=32,
+                occupancy_after=40, occupancy_every=20)
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+def test_train_and_eval_learn_the_sphere(dataset, tmp_path):
+    run = tmp_path / "run"
+    res = CliRunner().invoke(main, ["train", str(dataset), "--iters", "150", "--device", "cpu", "--out", str(run),
+                                    "--batch-rays", "512", "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert "holding out every 8th train view" in res.output
+    res = CliRunner().invoke(main, ["eval", str(run), "--quiet"])
+    assert res.exit_code == 0, res.output
+    m = json.loads((run / "metrics.json").read_text())
+    for key in ("split", "views", "psnr", "ssim", "lpips", "psnr_object", "ssim_object", "lpips_object",
+                "train_seconds"):
+        assert key in m
+    assert m["split"] == "test" and m["views"] == 2
+    assert m["psnr"] > 22 and m["ssim"] > 0.8, m  # a blank white image scores about 9 dB here
+    assert (run / "eval_test" / "train_r_0_gt_vs_pred.png").is_file()
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["method"] == "spikelik" and cfg["seed"] == 0
+
+
+def test_resume_gives_the_same_field(dataset, tmp_path):
+    a, b = tmp_path / "a", tmp_path / "b"
+    train(_cfg(dataset, iters=60), a, progress=False, log=lambda m: None)
+    train(_cfg(dataset, iters=60), b, progress=False, log=lambda m: None, stop_at=30)  # "interrupted" at 30
+    msgs = []
+    train(_cfg(dataset, iters=60), b, progress=False, log=msgs.append)
+    assert any("resuming" in m and "30" in m for m in msgs)
+    ca, cb = torch.load(a / "checkpoint.pt", weights_only=False), torch.load(b / "checkpoint.pt", weights_only=False)
+    assert ca["iteration"] == cb["iteration"] == 60
+    assert torch.equal(ca["state"]["grid"], cb["state"]["grid"])  # bit for bit
+
+
+def test_resume_after_sigkill(dataset, tmp_path):
+    run = tmp_path / "k"
+    cmd = [sys.executable, "-m", "spikenerf.cli", "train", str(dataset), "--iters", "400", "--device", "cpu",
+           "--out", str(run), "--batch-rays", "256", "--quiet"]
+    proc = subprocess.Popen(cmd, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    import time
+
+    deadline = time.time() + 120
+    while not (run / "checkpoint.pt").is_file() and time.time() < deadline and proc.poll() is None:
+        time.sleep(0.2)
+    proc.kill()
+    proc.wait()
+    assert not list(run.glob("*.part"))  # no half-written checkpoint left under any name we read
+    done = subprocess.run(cmd[:6] + ["60"] + cmd[7:], capture_output=True, text=True, timeout=300)
+    # 60 < 400: resuming a run asked for fewer iterations than it already has still reads the checkpoint
+    assert done.returncode == 0, done.stderr
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert ck["iteration"] >= 60
+
+
+def test_nan_loss_stops_and_keeps_last_checkpoint(dataset, tmp_path):
+    run = tmp_path / "nan"
+    train(_cfg(dataset, iters=5, checkpoint_every=1), run, progress=False, log=lambda m: None)
+    good = (run / "checkpoint.pt").read_bytes()
+    with pytest.raises(TrainError, match="NaN"):
+        train(_cfg(dataset, iters=10, checkpoint_every=1, lr_grid=float("nan")), run, progress=False,
+              log=lambda m: None)
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert ck["iteration"] == 5 and torch.isfinite(ck["state"]["grid"]).all()
+    assert (run / "checkpoint.pt").read_bytes() == good  # the last good checkpoint is kept
+
+
+def test_not_a_dataset_is_one_clear_line(tmp_path):
+    res = CliRunner().invoke(main, ["train", str(tmp_path), "--out", str(tmp_path / "r")])
+    assert res.exit_code == 2
+    assert "not a spike dataset" in res.output and "Traceback" not in res.output
+    res = CliRunner().invoke(main, ["eval", str(tmp_path)])
+    assert res.exit_code == 2 and "checkpoint" in res.output

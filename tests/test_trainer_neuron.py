@@ -1,0 +1,62 @@
+"""The trainer's differentiable sensor agrees with the generator's sensor model."""
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.torch
+
+from spikegen.sensor import Sensor, simulate  # noqa: E402
+from spikenerf import neuron  # noqa: E402
+
+
+def _scene(rng, H=16, W=24):
+    x = rng.uniform(0.0, 1.0, (H, W))
+    resp = rng.uniform(0.8, 1.25, (H, W))
+    dark = rng.uniform(0.0, 0.02, (H, W))
+    return x, resp, dark
+
+
+@pytest.mark.parametrize("intensity", [16, 64, 200])
+def test_expected_count_matches_simulate_subtractive(intensity):
+    rng = np.random.default_rng(7)
+    x, resp, dark = _scene(rng)
+    T = 256
+    spikes = simulate(x, intensity, Sensor(name="t", responsivity=resp, dark_rate=dark), frames=T, seed=3)
+    counts = spikes.sum(axis=0)
+    lam = neuron.spike_rate(torch.tensor(x), intensity, torch.tensor(resp), torch.tensor(dark))
+    mu = neuron.expected_count(lam, T).numpy()
+    # floor(A0 + T lambda) with A0 in [0, 1): within one spike of the mean, per pixel
+    assert np.all(np.abs(counts - mu) < 1.0 + 1e-6)
+    # and unbiased over pixels (uniform start phase)
+    assert abs((counts - mu).mean()) < 0.15
+
+
+def test_expected_count_saturates_like_the_sensor():
+    x = np.full((8, 8), 1.0)
+    spikes = simulate(x, 512, Sensor(), frames=64, seed=0)  # lambda = 2 > 1: one spike a frame
+    mu = neuron.expected_count(neuron.spike_rate(torch.tensor(x), 512, None, None), 64).numpy()
+    assert np.all(spikes.sum(axis=0) == 64) and np.allclose(mu, 64)
+
+
+def test_reset_to_zero_staircase_matches_simulate():
+    rng = np.random.default_rng(1)
+    x = rng.uniform(0.05, 1.0, (8, 16))
+    T, intensity = 256, 128
+    spikes = simulate(x, intensity, Sensor(reset="zero"), frames=T, seed=5)
+    lam = neuron.spike_rate(torch.tensor(x), intensity, None, None)
+    mu = neuron.expected_count(lam, T, reset="zero").numpy()
+    assert np.all(np.abs(spikes.sum(axis=0) - mu) <= 1.0 + 1e-6)
+    # and it is lower than the subtractive count where 1/lambda is not an integer
+    assert np.all(mu <= neuron.expected_count(lam, T).numpy() + 1e-9)
+
+
+def test_gradient_flows_through_reset_to_zero():
+    lam = torch.tensor([0.3, 0.6], requires_grad=True)
+    neuron.expected_count(lam, 100, reset="zero").sum().backward()
+    assert torch.all(lam.grad > 0)
+
+
+def test_count_variance_grows_with_shot_noise():
+    mu = torch.tensor([0.0, 10.0])
+    assert torch.allclose(neuron.count_variance(mu), torch.full((2,), 1 / 6))
+    assert neuron.count_variance(mu, electrons=5.0)[1] == pytest.approx(1 / 6 + 2.0)

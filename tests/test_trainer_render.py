@@ -1,0 +1,89 @@
+"""Rays, packed compositing and the grid field on small hand-checked cases."""
+import math
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.torch
+
+from spikenerf.model import GridField  # noqa: E402
+from spikenerf.render import (_exclusive_segment_cumsum, box_interval, pixel_rays, render_image,  # noqa: E402
+                              render_rays)
+
+
+def _look_from_z(dist=4.0):
+    pose = torch.eye(4)
+    pose[2, 3] = dist  # camera on +z looking down -z at the origin
+    return pose
+
+
+def test_centre_pixel_looks_down_minus_z():
+    pose = _look_from_z()
+    o, d = pixel_rays(pose[None].expand(1, 4, 4), torch.tensor([5 * 10 + 5]), 10, 10, 20.0)
+    assert torch.allclose(o, torch.tensor([[0.0, 0.0, 4.0]]))
+    assert torch.allclose(d, torch.tensor([[0.025, -0.025, -1.0]]) / math.sqrt(1 + 2 * 0.025 ** 2))
+
+
+def test_box_interval_hit_and_miss():
+    o = torch.tensor([[0.0, 0.0, 4.0], [5.0, 5.0, 4.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    box = torch.tensor([[-1.0] * 3, [1.0] * 3])
+    t_in, t_out = box_interval(o, d, box)
+    assert t_in[0] == pytest.approx(3.0) and t_out[0] == pytest.approx(5.0)
+    assert t_out[1] <= t_in[1]
+
+
+def test_segment_cumsum():
+    v = torch.tensor([1.0, 2.0, 3.0, 4.0, 5.0])
+    seg = torch.tensor([0, 0, 2, 2, 2])
+    assert torch.equal(_exclusive_segment_cumsum(v, seg, 3), torch.tensor([0.0, 1.0, 0.0, 3.0, 7.0]))
+
+
+def _cube_field(value=0.25):
+    f = GridField(grid_size=33, final_size=33, bound=1.5)
+    with torch.no_grad():
+        f.grid[0, 0] = -30.0  # empty
+        f.grid[0, 0, 11:22, 11:22, 11:22] = 30.0  # an opaque cube |x| <= 0.5
+        f.grid[0, 1] = math.log(value / (1 - value))
+    return f
+
+
+def test_opaque_cube_renders_its_colour_on_white():
+    f = _cube_field(0.25)
+    o = torch.tensor([[0.0, 0.0, 4.0], [1.0, 1.0, 4.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])
+    with torch.no_grad():
+        x, acc = render_rays(f, o, d)
+    x, acc = x.tolist(), acc.tolist()
+    assert acc[0] == pytest.approx(1.0, abs=1e-4) and x[0] == pytest.approx(0.25, abs=1e-3)
+    assert acc[1] == pytest.approx(0.0, abs=1e-4) and x[1] == pytest.approx(1.0, abs=1e-4)
+
+
+def test_occupancy_skipping_does_not_change_the_image():
+    f = _cube_field(0.6)
+    pose = _look_from_z()
+    full, _ = render_image(f, pose, 12, 12, 15.0)
+    frac = f.update_occupancy(1e-3)
+    assert frac < 0.2
+    assert torch.all(f.box[1] < 1.0)
+    skipped, _ = render_image(f, pose, 12, 12, 15.0)
+    assert torch.allclose(full, skipped, atol=1e-5)
+
+
+def test_upsample_keeps_the_field():
+    f = _cube_field(0.6)
+    pts = torch.tensor([[0.0, 0.0, 0.0], [1.2, -1.0, 0.3]])
+    before = f.sample_grid(pts)
+    f.upsample(65)
+    assert f.grid_size == 65 and f.occupancy.shape == (65, 65, 65)
+    assert torch.allclose(f.sample_grid(pts), before, atol=1e-4)
+
+
+def test_gradients_reach_the_grid():
+    f = GridField(grid_size=16, final_size=16)
+    o = torch.tensor([[0.0, 0.0, 4.0]])
+    d = torch.tensor([[0.0, 0.0, -1.0]])
+    x, _ = render_rays(f, o, d, jitter=torch.tensor([0.3]))
+    x.sum().backward()
+    assert f.grid.grad is not None and torch.count_nonzero(f.grid.grad) > 0
