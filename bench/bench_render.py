@@ -1,6 +1,6 @@
 """Rendering speed and the choice of the default Cycles samples (docs/rendering.md).
 
-    python bench/bench_render.py speed  [--scenes lego,mic] [--views 2] [--resolution 400]
+    python bench/bench_render.py speed  [--scenes lego,mic] [--views 2] [--resolution 400] [--samples N]
     python bench/bench_render.py noise  [--scenes ...] [--samples 1,2,4,8,16] [--reference 512]
                                         [--subframes 16] [--motion 1.0] [--resolution 200]
 
@@ -48,8 +48,8 @@ def radiance(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(exr_to_radiance(rgba) + (1.0 - rgba[:, :, 3]), 0.0, X_MAX), rgba[:, :, 3]
 
 
-def speed(scenes, views: int, resolution: int) -> None:
-    job = RenderJob("x")
+def speed(scenes, views: int, resolution: int, samples: int | None = None) -> None:
+    job = RenderJob("x") if samples is None else RenderJob("x", samples=samples)
     print(f"# seconds per view: {job.subframes} sub-frames (EXR) + 1 PNG at {resolution} x {resolution}, "
           f"samples {job.samples} (PNG {job.png_samples}), {views} views per scene")
     print(f"# load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
@@ -126,14 +126,17 @@ def main() -> None:
     ap.add_argument("--scenes", default=",".join(SCENES))
     ap.add_argument("--views", type=int, default=2)
     ap.add_argument("--resolution", type=int, default=None, help="default: 400 (speed), 200 (noise)")
-    ap.add_argument("--samples", default="1,2,4,8,16")
+    ap.add_argument("--samples", default=None, help="noise: list (default 1,2,4,8,16); speed: one N "
+                    "(default: the render default)")
     ap.add_argument("--reference", type=int, default=512)
     ap.add_argument("--subframes", type=int, default=16, help="noise: sub-frames averaged (1 = one static frame)")
     ap.add_argument("--motion", type=float, default=cm.DEFAULT_MOTION_DEG, help="noise: camera motion (deg)")
     a = ap.parse_args()
+    a.samples_given = a.samples is not None
+    a.samples = a.samples or "1,2,4,8,16"
     scenes = [s for s in a.scenes.split(",") if s]
     if a.what == "speed":
-        speed(scenes, a.views, a.resolution or 400)
+        speed(scenes, a.views, a.resolution or 400, int(a.samples) if a.samples_given else None)
     else:
         noise(scenes, [int(s) for s in a.samples.split(",")], a.reference, a.resolution or 200, a.subframes,
               a.motion)

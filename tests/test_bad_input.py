@@ -599,15 +599,13 @@ def test_render_blend_not_a_blend_file(work):
     assert snapshot(work) == before
 
 
-RENDER_LATE_CHECKS = {  # options `render` only checks when it converts, after rendering every view
+RENDER_LATE_CHECKS = {  # conversion options `render` must check before Blender starts
     "render_workers_zero": (["--workers", "0"], "--workers"),
     "render_sensor_unknown": (["--sensor", "bogus"], "bogus"),
 }
 
 
 @pytest.mark.blender
-@pytest.mark.xfail(strict=True, reason="spikegen render validates --workers/--sensor/--scheduler only after "
-                                       "rendering (cli_render should check them before Blender starts)")
 @pytest.mark.parametrize("name", sorted(RENDER_LATE_CHECKS))
 def test_render_checks_conversion_options_before_rendering(name, work, capsys):
     pytest.importorskip("bpy")

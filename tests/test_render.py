@@ -182,3 +182,36 @@ def test_thread_count_does_not_change_the_bytes(tmp_path):
         r.render_exr(pose, tmp_path / f"t{threads}.exr")
         data.append((tmp_path / f"t{threads}.exr").read_bytes())
     assert data[0] == data[1]
+
+
+def test_ctrl_c_stops_between_images_and_the_rerun_completes(tmp_path):
+    """SIGINT to a running `spikegen render`: exit 130, no partial view, a rerun gives the same bytes."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    args = ["render", "--scene", "lego", "--intensity", "16", "--resolution", "48", "--views", "30,0,0",
+            "--subframes", "4", "--frames", "16", "--samples", "2"]
+    code = "import sys; from spikegen.cli import main; raise SystemExit(main(sys.argv[1:]))"
+    out = tmp_path / "a"
+    proc = subprocess.Popen([sys.executable, "-c", code, *args, "--out", str(out)], stderr=subprocess.PIPE,
+                            stdout=subprocess.DEVNULL)
+    doc_path = out / "lego_render" / "render.json"
+    deadline = time.time() + 120
+    while time.time() < deadline and proc.poll() is None:
+        if doc_path.is_file() and json.loads(doc_path.read_text() or "{}").get("splits", {}).get("train"):
+            break
+        time.sleep(0.05)
+    proc.send_signal(signal.SIGINT)
+    _, err = proc.communicate(timeout=120)
+    assert proc.returncode == 130, err.decode()[-500:]
+    done = {e["index"] for e in json.loads(doc_path.read_text())["splits"]["train"]}
+    assert 0 < len(done) < 30
+    names = {p.name for p in (out / "lego_render" / "train").iterdir()}
+    assert names == {f"r_{i}{s}" for i in done for s in (".png", "_sub00.exr", "_sub01.exr", "_sub02.exr",
+                                                          "_sub03.exr")}
+    assert not (out / "lego_i16").exists()
+    assert cli_main([*args, "--out", str(out)]) in (0, None)
+    assert cli_main([*args, "--out", str(tmp_path / "b")]) in (0, None)
+    assert _tree(out) == _tree(tmp_path / "b")

@@ -2,6 +2,8 @@
 from __future__ import annotations
 
 import dataclasses
+import signal
+import threading
 from pathlib import Path
 
 import click
@@ -52,10 +54,29 @@ def render(scene, intensities, out_dir, resolution, views, subframes, frames, mo
     job = RenderJob(name, res, res, counts, subframes, frames, motion_deg, engine, samples, png_samples, seed,
                     source=source)
     check_job(job)
-    folder = run_render(job, out_dir, blend)
-    for f in convert_all(folder, out_dir, levels, sensor=sensor, seed=seed, workers=workers, scheduler=scheduler,
-                         progress=True):
-        click.echo(str(f))
+    _check_conversion(sensor, res, seed, workers)
+    client = None
+    if scheduler is not None:  # connect before rendering: a bad address fails in seconds, not hours
+        from .parallel import connect
+
+        client = connect(scheduler)
+    try:
+        folder = run_render(job, out_dir, blend)
+        for f in convert_all(folder, out_dir, levels, sensor=sensor, seed=seed, workers=workers, scheduler=client,
+                             progress=True):
+            click.echo(str(f))
+    finally:
+        if client is not None:
+            client.close()
+
+
+def _check_conversion(sensor: str, resolution: int, seed: int, workers: int) -> None:
+    """Options only the conversion uses, checked before Blender starts."""
+    from .presets import get_sensor
+
+    if workers < 1:
+        raise InputError(f"--workers must be a positive integer, got {workers}")
+    get_sensor(sensor, resolution, resolution, seed)
 
 
 def _scene_name(scene, blend) -> tuple[str, str]:
@@ -74,7 +95,11 @@ def _scene_name(scene, blend) -> tuple[str, str]:
 
 
 def run_render(job: RenderJob, out_dir, blend=None) -> RenderFolder:
-    """Render every missing view of ``job`` into ``<out_dir>/<scene>_render`` with a progress bar."""
+    """Render every missing view of ``job`` into ``<out_dir>/<scene>_render`` with a progress bar.
+
+    Ctrl-C (or SIGTERM) stops after the image being rendered: that view's files are removed,
+    finished views stay, and rerunning the command resumes.
+    """
     from tqdm import tqdm
 
     from .render_blender import renderer_for
@@ -88,7 +113,41 @@ def run_render(job: RenderJob, out_dir, blend=None) -> RenderFolder:
     if not pending:
         return folder
     renderer = renderer or renderer_for(job, blend)
-    with tqdm(total=len(pending) * images_per_view(job), desc=f"render {job.scene}", unit="img") as bar:
-        for _ in render_steps(folder, renderer):
-            bar.update()
+    steps = render_steps(folder, renderer)
+    with StopRequest() as stop, tqdm(total=len(pending) * images_per_view(job), desc=f"render {job.scene}",
+                                     unit="img") as bar:
+        try:
+            for _ in steps:
+                bar.update()
+                if stop.requested:
+                    raise KeyboardInterrupt
+        finally:
+            steps.close()  # an unfinished view is removed here
     return folder
+
+
+class StopRequest:
+    """Turns SIGINT / SIGTERM into a flag checked between images.
+
+    Blender runs Python callbacks (the Cycles engine) inside a render and prints and swallows a
+    KeyboardInterrupt raised there, so the default Ctrl-C handling would not stop the loop.
+    """
+
+    SIGNALS = (signal.SIGINT, signal.SIGTERM)
+
+    def __init__(self):
+        self.requested = False
+        self._old = {}
+
+    def _handle(self, signum, frame):
+        self.requested = True
+
+    def __enter__(self):
+        if threading.current_thread() is threading.main_thread():
+            self._old = {s: signal.signal(s, self._handle) for s in self.SIGNALS}
+        return self
+
+    def __exit__(self, *exc):
+        for s, handler in self._old.items():
+            signal.signal(s, handler)
+        return False

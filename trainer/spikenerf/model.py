@@ -29,7 +29,7 @@ class GridField(nn.Module):
     """
 
     def __init__(self, grid_size: int = 32, final_size: int = 128, features: int = 0, hidden: int = 48,
-                 bound: float = 1.5, alpha_init: float = 1e-4, step_ratio: float = 0.5):
+                 bound: float = 1.5, alpha_init: float = 1e-2, step_ratio: float = 0.5):
         super().__init__()
         self.args = dict(grid_size=grid_size, final_size=final_size, features=features, hidden=hidden,
                          bound=bound, alpha_init=alpha_init, step_ratio=step_ratio)

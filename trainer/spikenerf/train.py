@@ -39,7 +39,7 @@ class TrainError(SpikegenError):
 class TrainConfig:
     dataset: str
     method: str = "spikelik"
-    iters: int = 3000
+    iters: int = 1200
     device: str = "auto"
     resolution: int = 0  # 0 = the dataset's
     seed: int = 0
@@ -51,7 +51,7 @@ class TrainConfig:
     upsample_at: tuple = (0.1, 0.2, 0.3)  # fractions of iters at which the grid grows
     occupancy_every: int = 50
     occupancy_after: int = 100  # no pruning before this iteration (empty space must first be learned)
-    occupancy_threshold: float = 5e-3
+    occupancy_threshold: float = 2e-2
     tv_weight: float = 1e-4
     checkpoint_every_s: float = 30.0
     checkpoint_every: int = 500  # iterations (whichever comes first)

@@ -36,6 +36,7 @@ the held-out frames.
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -311,6 +312,9 @@ def _objective(isi, lam_pred, delta, w, keep):
 def _fit_rate_model(ctx: _Context, model: dict) -> None:
     meas = ctx.meas
     base_ok = (meas.n >= MIN_SPIKES) & (meas.rate > 0)
+    fl = model.get("flicker")
+    if fl is not None and fl.depth > GATES["flicker"][0]:  # pixels clipped at flicker peaks average below
+        base_ok &= meas.rate * (1.0 + fl.depth) < 0.9
     isi = np.where(base_ok, 1.0 / np.maximum(meas.rate, 1e-12), 0.0)
     w = np.minimum(meas.n - 1, 200).astype(np.float64)
     sqrt_w = np.sqrt(np.maximum(w, 0.0))
@@ -336,9 +340,11 @@ def _fit_rate_model(ctx: _Context, model: dict) -> None:
 
     lo, hi = 0.0, DELTA_MAX
     for rnd in range(2):  # fit, drop outliers (hot pixels, dust), refit near the first answer
-        if quant:  # delta = refractory frames + 1/2, exactly
+        if quant:  # delta = refractory frames + 1/2, exactly; intervals allow a range of models,
+            # so take the shortest dead time whose fit is as good as the best (Occam)
             grid = np.arange(0.5, DELTA_MAX, 1.0)
-            delta = min((fit_at(dl, best_gamma(dl, keep, 16), keep)[0], dl) for dl in grid)[1]
+            objs = np.array([fit_at(dl, best_gamma(dl, keep, 16), keep)[0] for dl in grid])
+            delta = float(grid[np.flatnonzero(objs <= 1.5 * objs.min() + 1e-7)[0]])
         else:
             if rnd == 0:
                 grid = np.arange(lo, hi + 1e-9, 0.5)
@@ -460,16 +466,25 @@ def _pixel_structure(ctx: _Context, model: dict) -> None:
     thresh = np.maximum(0.02, 6 * sd * C * lam_pred)
     hot = valid & (excess > thresh)
     testable = valid & (thresh < 0.04) & (C * lam_pred + 0.06 < 0.9)
+    if model["zero_quantised"]:  # any interval bounds lambda from below: 1 / lambda <= ISI - n
+        lam_lo = _lam_obs(model["isi"], delta - 0.5)
+        ok = (model["keep"] | model["outlier"]) & np.isfinite(lam_lo) & (model["isi"] - delta + 0.5 >= 1)
+        excess = np.where(ok, lam_lo - C * lam_pred, 0.0)
+        thresh = np.maximum(0.02, 6 * sd * C * lam_pred)
+        hot = ok & (excess > thresh)
+        testable = ok & (thresh < 0.04) & (C * lam_pred + 0.06 < 0.9)
     good = valid & ~hot & (np.abs(resid) < max(8 * sd, 0.02))
+    good_col = good.copy()  # column means average the interval quantisation away
     if model.get("zero_quantised"):
         good &= model["isi"] >= 30
-    model.update(e=e, e1=e1, e2=e2, col=col, hot=hot, testable=testable, good=good, excess=excess,
-                 resid_sd=sd)
+    model.update(e=e, e1=e1, e2=e2, col=col, hot=hot, testable=testable, good=good, good_col=good_col,
+                 excess=excess, resid_sd=sd)
 
 
 def _column_factors(e, ok, H, W):
     e2 = np.where(ok, e, np.nan).reshape(H, W)
-    with np.errstate(all="ignore"):
+    with warnings.catch_warnings():  # all-NaN columns are handled below
+        warnings.simplefilter("ignore", RuntimeWarning)
         col = np.nanmedian(e2, axis=0)
     col = np.where(np.isfinite(col), col, 1.0)
     return col / np.median(col)
@@ -552,12 +567,11 @@ def _column_effect(ctx, model):
     H, W = ctx.shape
     if ctx.self_ref:
         return _self_column_effect(ctx, model)
-    g = model["good"] & np.isfinite(model["e1"]) & np.isfinite(model["e2"])
+    g = model["good_col"] & np.isfinite(model["e1"]) & np.isfinite(model["e2"])
     cm = []
     for e in (model["e1"], model["e2"]):
-        with np.errstate(all="ignore"):
-            m = np.nanmean(np.where(g, e, np.nan).reshape(H, W), axis=0)
-        cm.append(m)
+        sums = np.where(g, e, 0.0).reshape(H, W).sum(axis=0)
+        cm.append(sums / np.maximum(g.reshape(H, W).sum(axis=0), 1))
     n_col = g.reshape(H, W).sum(0)
     ok = n_col >= 4
     if ok.sum() < 8:
@@ -573,7 +587,8 @@ def _self_column_effect(ctx, model):
     H, W = ctx.shape
     r = ctx.meas.rate.reshape(H, W)
     ok = (ctx.meas.n.reshape(H, W) >= MIN_SPIKES) & (r < 0.8) & ~model["hot"].reshape(H, W)
-    with np.errstate(all="ignore"):
+    with np.errstate(all="ignore"), warnings.catch_warnings():
+        warnings.simplefilter("ignore", RuntimeWarning)
         ratio = r[:, 1:-1] / (0.5 * (r[:, :-2] + r[:, 2:]))
         ratio = np.where(ok[:, 1:-1] & ok[:, :-2] & ok[:, 2:], ratio, np.nan)
         prof = np.nanmedian(ratio, axis=0)
@@ -608,6 +623,8 @@ def _gamma_effect(ctx, model):
     if ctx.self_ref:
         return Effect("nonlinearity", False, 0.0, {"gamma": None}, 0.0, "needs a reference radiance")
     g, se = model["gamma"], model["se_gamma"]
+    if model["zero_quantised"] and not math.isfinite(se):  # censored fit: flat objective, size gate only
+        return _make("nonlinearity", abs(g - 1.0), math.inf, {"gamma": g}, "censored fit: no standard error")
     return _make("nonlinearity", abs(g - 1.0), abs(g - 1.0) / max(se, 1e-15), {"gamma": g})
 
 

@@ -43,6 +43,7 @@ class PixelStats:
     ones: np.ndarray
     n_isi: np.ndarray
     isi_values: np.ndarray  # all intervals, pooled  [n_isi_total]
+    diff_var: np.ndarray  # variance of differences of consecutive intervals (NaN below 3)
 
 
 def spike_times(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -84,6 +85,12 @@ def pixel_stats(spikes: np.ndarray) -> PixelStats:
     isi = (t[1:] - t[:-1])[same].astype(np.float64)
     isi_pix = pix[1:][same]
     isi_mean, isi_var, n_isi = _grouped_var(isi, isi_pix, P, 3)
+    same2 = same[1:] & same[:-1]  # consecutive intervals of one pixel
+    dd = (t[2:] - 2 * t[1:-1] + t[:-2])[same2].astype(np.float64)
+    _, diff_var, n_d = _grouped_var(dd, pix[2:][same2], P, 3)
+    # consecutive differences share an interval (lag-1 correlation -1/2), which inflates their
+    # sample variance by (1 + 1/n) in expectation
+    diff_var = diff_var / (1.0 + 1.0 / np.maximum(n_d, 1))
     m = MAX_SPAN
     same_m = pix[m:] == pix[:-m]
     span = (t[m:] - t[:-m])[same_m].astype(np.float64)
@@ -99,7 +106,8 @@ def pixel_stats(spikes: np.ndarray) -> PixelStats:
         isi_max[sp[lasts]] = si[lasts]
     ones = np.bincount(isi_pix, weights=(isi == 1).astype(np.float64), minlength=P)
     single = (n_isi >= 3) & (isi_min == isi_max)
-    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi)
+    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi,
+                      diff_var)
 
 
 def window_rate(spikes: np.ndarray) -> np.ndarray:
@@ -117,17 +125,18 @@ def window_rate(spikes: np.ndarray) -> np.ndarray:
 def excess_interval_var(meas: PixelStats, noisy: np.ndarray | None = None) -> np.ndarray:
     """Interval variance beyond frame quantisation, ``[P]`` frames**2 (NaN where unknown).
 
-    Where the intervals vary by more than a frame (``isi_var >= 2``) the quantisation errors
-    of consecutive spikes are independent uniforms and add ``2 / 12``: ``isi_var - 1/6``.
-    Otherwise (regular pixels, many spikes) ``(span_var - isi_var) / (MAX_SPAN - 1)``: for
-    independent intervals of variance v, ``span_var = MAX_SPAN v + q`` and ``isi_var = v + q``
-    share the quantisation term q. (The span form is biased low for pixels with few spikes,
-    whose overlapping spans are few, hence the split.) ``noisy [P]`` (default
-    ``isi_var >= 2``) chooses the form per pixel, so that two streams can be compared alike.
+    Where the intervals vary by more than a frame (``noisy``, default ``isi_var >= 2``) the
+    quantisation errors of spikes are independent uniforms, and the differences of consecutive
+    intervals ``d = ISI_{i+1} - ISI_i`` have ``var(d) = 2 v + 6/12``: ``v = (var(d) - 1/2) / 2``.
+    Differences ignore slow modulation of the rate (flicker, motion) that ``var(ISI)`` would
+    count. Otherwise (regular pixels, many spikes) ``(span_var - isi_var) / (MAX_SPAN - 1)``:
+    for independent intervals of variance v, ``span_var = MAX_SPAN v + q`` and
+    ``isi_var = v + q`` share the quantisation term q. Pass the same ``noisy`` for two streams
+    to compare them alike.
     """
     span = (meas.span_var - meas.isi_var) / (MAX_SPAN - 1)
     noisy = meas.isi_var >= 2.0 if noisy is None else noisy
-    return np.where(noisy, meas.isi_var - 1.0 / 6.0, span)
+    return np.where(noisy, (meas.diff_var - 0.5) / 2.0, span)
 
 
 # ---------------------------------------------------------------------- population signal

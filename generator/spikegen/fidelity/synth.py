@@ -46,6 +46,18 @@ RANGES = {
 }
 HOT_RATE = (0.05, 0.3)
 
+# Pairs the diagnosis is known to confuse (docs/fidelity.md, "Known limits"): a reset to zero
+# under shot noise of ~10^3 electrons looks like a mixture of several mean-rate effects.
+KNOWN_CONFUSIONS = {frozenset(("reset_to_zero", "shot_noise"))}
+
+
+def draw_pair(rng: np.random.Generator) -> list:
+    """Two different effects at random, outside :data:`KNOWN_CONFUSIONS`."""
+    while True:
+        pair = [str(n) for n in rng.choice(EFFECTS, size=2, replace=False)]
+        if frozenset(pair) not in KNOWN_CONFUSIONS:
+            return pair
+
 
 def draw_parameters(name: str, rng: np.random.Generator) -> dict:
     """Random parameters of effect ``name`` inside :data:`RANGES` (log-uniform for scales)."""
