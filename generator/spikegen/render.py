@@ -135,6 +135,9 @@ class RenderFolder:
         """Open (or start) ``<out_dir>/<scene>_render``; refuse one made with other settings."""
         folder = cls(render_folder(out_dir, job.scene), job, {s: {} for s in SPLITS})
         doc_path = folder.path / "render.json"
+        if folder.path.is_dir():  # temporaries of writes cut short by a kill: never finished files
+            for stale in folder.path.rglob(".*.part"):
+                stale.unlink(missing_ok=True)
         if doc_path.is_file():
             folder._resume(doc_path)
         elif folder.path.exists() and any(folder.path.iterdir()):
