@@ -87,3 +87,22 @@ def test_gradients_reach_the_grid():
     x, _ = render_rays(f, o, d, jitter=torch.tensor([0.3]))
     x.sum().backward()
     assert f.grid.grad is not None and torch.count_nonzero(f.grid.grad) > 0
+
+
+def test_window_poses_follow_the_subframe_poses():
+    from spikenerf.data import interpolate_pose
+    from spikenerf.targets import window_bounds
+
+    def rot_z(a):
+        m = np.eye(4)
+        m[:2, :2] = [[np.cos(a), -np.sin(a)], [np.sin(a), np.cos(a)]]
+        m[:3, 3] = [4 * np.cos(a), 4 * np.sin(a), 1.0]
+        return m
+
+    sub = np.stack([rot_z(0.01 * k) for k in range(16)])  # K = 16 poses over T = 256 frames
+    assert np.allclose(interpolate_pose(sub, 8.0, 256), sub[0])  # sub-frame k sits at frame (k + 0.5) * 16
+    assert np.allclose(interpolate_pose(sub, 0.0, 256), sub[0])  # held before the first centre
+    mid = interpolate_pose(sub, 16.0, 256)  # half way between sub-frames 0 and 1
+    assert np.allclose(mid[:3, :3] @ mid[:3, :3].T, np.eye(3), atol=1e-9)
+    assert np.allclose(mid[:3, :3], rot_z(0.005)[:3, :3], atol=1e-5)
+    assert window_bounds(256, 8) == [(32 * w, 32 * w + 32) for w in range(8)]

@@ -574,6 +574,22 @@ def _frame_radiance(x, r0, r1, T, sensor: Sensor) -> np.ndarray:
     return np.ascontiguousarray(xt).reshape(T, -1)
 
 
+def neighbour_mean(x: np.ndarray) -> np.ndarray:
+    """Mean of the 4 neighbours of every pixel of ``[..., H, W]``; neighbours outside the
+    image are left out of the mean, and a pixel with none keeps its own value."""
+    total = np.zeros(x.shape, dtype=np.float64)
+    count = np.zeros(x.shape[-2:])
+    total[..., 1:, :] += x[..., :-1, :]
+    count[1:, :] += 1
+    total[..., :-1, :] += x[..., 1:, :]
+    count[:-1, :] += 1
+    total[..., :, 1:] += x[..., :, :-1]
+    count[:, 1:] += 1
+    total[..., :, :-1] += x[..., :, 1:]
+    count[:, :-1] += 1
+    return np.where(count == 0, x, total / np.maximum(count, 1))
+
+
 def crosstalk(xt: np.ndarray, fraction: float, top_edge=True, bottom_edge=True) -> np.ndarray:
     """``X' = (1 - c) X + c * mean of the 4 neighbours`` on ``[..., H, W]``.
 
@@ -581,19 +597,7 @@ def crosstalk(xt: np.ndarray, fraction: float, top_edge=True, bottom_edge=True) 
     ``bottom_edge`` say whether the first / last row is the image border (False when the
     array is a block with a one-row halo, whose halo rows are then not valid outputs).
     """
-    total = np.zeros_like(xt)
-    count = np.zeros(xt.shape[-2:])
-    total[..., 1:, :] += xt[..., :-1, :]
-    count[1:, :] += 1
-    total[..., :-1, :] += xt[..., 1:, :]
-    count[:-1, :] += 1
-    total[..., :, 1:] += xt[..., :, :-1]
-    count[:, 1:] += 1
-    total[..., :, :-1] += xt[..., :, 1:]
-    count[:, :-1] += 1
-    lonely = count == 0  # a 1-pixel-wide image: no neighbours, nothing to mix
-    mean = np.where(lonely, xt, total / np.maximum(count, 1))
-    return (1.0 - fraction) * xt + fraction * mean
+    return (1.0 - fraction) * xt + fraction * neighbour_mean(xt)
 
 
 def shot_noise(charge: np.ndarray, electrons: float, rng: np.random.Generator) -> np.ndarray:

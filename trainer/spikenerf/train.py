@@ -73,7 +73,7 @@ def resolve_device(name: str) -> torch.device:
 
 
 def final_grid(cfg: TrainConfig, width: int) -> int:
-    return cfg.grid_final or int(min(160, max(64, round(0.8 * width / 8) * 8)))
+    return cfg.grid_final or int(min(160, max(32, round(0.8 * width / 8) * 8)))
 
 
 def grid_schedule(cfg: TrainConfig, width: int) -> list[tuple[int, int]]:
@@ -253,7 +253,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         opt.step()
         if it % 10 == 0:
             mse = float((pred.detach().clamp(0, 1) - obs.clamp(0, 1)).square().mean())
-            bar.set_postfix(loss=f"{float(loss):.4g}", psnr=f"{-10 * math.log10(max(mse, 1e-10)):.2f}",
+            bar.set_postfix(loss=f"{loss.item():.4g}", psnr=f"{-10 * math.log10(max(mse, 1e-10)):.2f}",
                             grid=field.grid_size, occ=f"{float(field.occupancy.float().mean()):.3f}")
         now = time.perf_counter()
         done = it + 1

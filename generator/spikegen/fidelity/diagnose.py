@@ -42,7 +42,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from ..errors import InputError
-from ..sensor import Sensor, interpolation_weights, simulate
+from ..sensor import Sensor, interpolation_weights, neighbour_mean, simulate
 from . import stats
 from .synth import EFFECTS
 
@@ -231,12 +231,12 @@ def _bases(ctx: _Context, gamma: float):
     K, H, W = ctx.X.shape
     if K == 1:
         xg = ctx.X[0] ** gamma
-        return xg.reshape(-1), (stats.neighbour_mean(xg) - xg).reshape(-1)
+        return xg.reshape(-1), (neighbour_mean(xg) - xg).reshape(-1)
     T = ctx.spikes.shape[0]
     ts = np.unique(np.linspace(0, ctx.Tf - 1, min(ctx.Tf, 48)).astype(int))
     wts = interpolation_weights(K, T)[ts]
     xg = (wts @ ctx.X.reshape(K, -1)).reshape(-1, H, W) ** gamma
-    return xg.mean(0).reshape(-1), (stats.neighbour_mean(xg) - xg).mean(0).reshape(-1)
+    return xg.mean(0).reshape(-1), (neighbour_mean(xg) - xg).mean(0).reshape(-1)
 
 
 def _design(ctx, model, gamma, use_c):

@@ -246,21 +246,6 @@ def golden_min(f, lo, hi, iters=30):
 
 
 # ---------------------------------------------------------------------- spatial helpers
-def neighbour_mean(x: np.ndarray) -> np.ndarray:
-    """Mean of the 4 neighbours of every pixel of ``[..., H, W]`` (missing ones left out)."""
-    total = np.zeros_like(x, dtype=np.float64)
-    count = np.zeros(x.shape[-2:])
-    total[..., 1:, :] += x[..., :-1, :]
-    count[1:, :] += 1
-    total[..., :-1, :] += x[..., 1:, :]
-    count[:-1, :] += 1
-    total[..., :, 1:] += x[..., :, :-1]
-    count[:, 1:] += 1
-    total[..., :, :-1] += x[..., :, 1:]
-    count[:, :-1] += 1
-    return total / count
-
-
 def median3x3(x: np.ndarray) -> np.ndarray:
     """3 x 3 median filter of ``[H, W]`` with edge replication."""
     p = np.pad(np.asarray(x, dtype=np.float64), 1, mode="edge")
