@@ -11,7 +11,9 @@
   of T/8 frames), each rendered from the camera pose at its own time (interpolated from the
   recorded sub-frame poses), so camera motion during the stream is modelled, not blurred;
   Gaussian likelihood with the count variance of the sensor (:func:`neuron.count_variance`),
-  R and d from the dataset's sensor. For a static view (all sub-frame poses equal) the
+  R and d from the dataset's sensor; when the dataset was made by the ``rsir`` reference
+  generator, its exact mean charge (:func:`neuron.rsir_rate`: Poisson gray levels and the
+  uniform quantisation noise make it compressive) replaces the linear rate. For a static view (all sub-frame poses equal) the
   windows share one pose, so it uses the whole stream as one window.
 """
 from __future__ import annotations
@@ -29,10 +31,11 @@ class Method:
     use_resp: bool = True  # apply R (and d) in the sensor
     tfp_frames: int = 0
     loss: str = "mse"  # "mse" (rate or radiance units) | "nll" (Gaussian, count units)
+    exact_sensor: bool = False  # use the dataset's own sensor kind (rsir: its exact mean charge)
 
 
 METHODS = {
-    "spikelik": Method("spikelik", "counts", windows=8, loss="nll"),
+    "spikelik": Method("spikelik", "counts", windows=8, loss="nll", exact_sensor=True),
     "spikenerf": Method("spikenerf", "counts"),
     "spikenerf-noR": Method("spikenerf-noR", "counts", use_resp=False),
     "tfp32": Method("tfp32", "tfp", tfp_frames=32, use_resp=False),

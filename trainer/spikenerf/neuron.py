@@ -56,3 +56,27 @@ def count_variance(mu: torch.Tensor, electrons: float = 0.0, temporal: float = 0
     if temporal > 0:
         var = var + temporal * mu
     return var
+
+
+def rsir_rate(x: torch.Tensor, intensity: float, resp: torch.Tensor | None, dark: torch.Tensor | None) -> torch.Tensor:
+    """Mean charge per frame (= spikes per frame) of the ``rsir`` reference generator (sensor-model.md).
+
+    Per frame ``v ~ Poisson(m)``, ``m = I X 255/256``; ``D = 255/v - 1``; ``D' = D / (R + D d)``;
+    ``q = 1 / (D' + U + 1)`` with ``U ~ U(0, 1)``, whose mean over U is ``ln((a + 1) / a)``,
+    ``a = D' + 1``; ``v = 0`` gives ``D' = 1/d``. Summed over v with Poisson weights (a truncated,
+    differentiable sum), so the generator's compression at high intensity (``q`` is 10 % below
+    the linear ``I X / 256`` at I = 64, X = 1) is modelled instead of read as darker radiance.
+    """
+    m = (x * (float(intensity) * 255.0 / 256.0)).clamp(min=1e-8)
+    v_max = int(float(intensity) + 6.0 * float(intensity) ** 0.5 + 6)
+    v = torch.arange(0, v_max + 1, device=x.device, dtype=x.dtype)
+    logp = v * torch.log(m)[..., None] - m[..., None] - torch.lgamma(v + 1)  # [..., V]
+    resp = torch.ones_like(x) if resp is None else resp.expand_as(x)
+    dark = torch.zeros_like(x) if dark is None else dark.expand_as(x)
+    D = (255.0 / v[1:].clamp(min=1) - 1).clamp(min=0)  # [V-1]; v > 255 would be a negative interval
+    Dp = D / (resp[..., None] + D * dark[..., None])
+    q_lit = torch.log((Dp + 2) / (Dp + 1))  # mean over U of 1 / (D' + U + 1)
+    a0 = 1.0 / dark.clamp(min=1e-12) + 1
+    q_dark = torch.where(dark > 0, torch.log((a0 + 1) / a0), torch.zeros_like(dark))
+    q = torch.cat([q_dark[..., None], q_lit], dim=-1)
+    return (torch.exp(logp) * q).sum(dim=-1)

@@ -27,6 +27,7 @@ class Targets:
     height: int
     width: int
     kind: str  # "counts" | "radiance"
+    sensor_kind: str = "if"  # the dataset's sensor: "if" or "rsir"
 
 
 def window_bounds(frames: int, windows: int) -> list[tuple[int, int]]:
@@ -64,10 +65,10 @@ def build_targets(ds: Dataset, method: Method, height: int, width: int, progress
             poses.append(pose)
             values.append(value.reshape(-1))
             frames.append(n)
-    resp, dark, _ = load_sensor_maps(ds)
+    resp, dark, sensor_kind = load_sensor_maps(ds)
     if not method.use_resp:
         resp = np.ones_like(resp)
     return Targets(np.asarray(poses, np.float32), np.asarray(values, np.float32), np.asarray(frames, np.float32),
                    _resize(resp, height, width).reshape(-1).astype(np.float32),
                    _resize(dark, height, width).reshape(-1).astype(np.float32), height, width,
-                   "counts" if method.target == "counts" else "radiance")
+                   "counts" if method.target == "counts" else "radiance", sensor_kind)

@@ -124,7 +124,10 @@ def method_loss(method, x, img, pix, batch: Batch, intensity: float):
     if batch.tg.kind == "radiance":
         return (x - obs).square().mean(), x, obs
     frames = batch.frames[img]
-    lam = neuron.spike_rate(x, intensity, batch.resp[pix], batch.dark[pix])
+    if method.exact_sensor and batch.tg.sensor_kind == "rsir":
+        lam = neuron.rsir_rate(x, intensity, batch.resp[pix], batch.dark[pix])
+    else:
+        lam = neuron.spike_rate(x, intensity, batch.resp[pix], batch.dark[pix])
     mu = neuron.expected_count(lam, frames)
     to_x = 256.0 / (intensity * frames)  # count -> radiance-like units, for comparable loss scales
     if method.loss == "nll":
