@@ -99,7 +99,7 @@ def main() -> None:
     args = ap.parse_args()
     if not LEGO.is_dir():
         sys.exit(f"{LEGO} not found: the real lego views are needed for this benchmark")
-    intensities = [int(v) for v in args.intensities.split(",")]
+    intensities = sorted(int(v) for v in args.intensities.split(","))
     sensors, methods = args.sensors.split(","), args.methods.split(",")
     results = {}
     for s in sensors:

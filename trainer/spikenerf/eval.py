@@ -7,7 +7,6 @@ model's output is linear luminance on white -> the same encoding.
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 
 import numpy as np

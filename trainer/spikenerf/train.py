@@ -6,13 +6,11 @@ a run resumed from a checkpoint continues with exactly the rays an uninterrupted
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
-import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -73,7 +71,7 @@ def resolve_device(name: str) -> torch.device:
 
 
 def final_grid(cfg: TrainConfig, width: int) -> int:
-    return cfg.grid_final or int(min(160, max(32, round(0.8 * width / 8) * 8)))
+    return cfg.grid_final or int(min(256, max(32, round(1.28 * width / 8) * 8)))
 
 
 def grid_schedule(cfg: TrainConfig, width: int) -> list[tuple[int, int]]:
