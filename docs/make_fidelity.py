@@ -22,8 +22,9 @@ sys.path.insert(0, str(REPO / "generator"))
 
 from spikegen.fidelity import stats, synth  # noqa: E402
 from spikegen.fidelity.diagnose import diagnose  # noqa: E402
+from spikegen.fidelity.report import save_figure  # noqa: E402
 from spikegen.sensor import Sensor, simulate  # noqa: E402
-from spikegen.spikeio import read_spikes, write_bytes_atomic, atomic_path  # noqa: E402
+from spikegen.spikeio import read_spikes, write_bytes_atomic  # noqa: E402
 
 FIG = HERE / "fidelity"
 SEED = 2024
@@ -31,19 +32,7 @@ SEED = 2024
 
 # ---------------------------------------------------------------------- helpers
 def fig(name, draw, size=(6.0, 3.8)):
-    import matplotlib
-
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    f, ax = plt.subplots(figsize=size)
-    try:
-        draw(ax)
-        f.tight_layout()
-        with atomic_path(FIG / name) as tmp:
-            f.savefig(tmp, format="png", dpi=100)
-    finally:
-        plt.close(f)
+    save_figure(FIG / name, draw, size, dpi=100)
     return f"fidelity/{name}"
 
 
@@ -394,7 +383,7 @@ def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--data", type=Path, default=REPO.parent / "shared" / "data")
     ap.add_argument("--no-preset", action="store_true")
-    ap.add_argument("--draws", type=int, default=3)
+    ap.add_argument("--draws", type=int, default=4)
     args = ap.parse_args(argv)
     real = args.data / "real"
     if not real.is_dir():

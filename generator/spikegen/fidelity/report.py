@@ -12,7 +12,8 @@ from ..spikeio import atomic_path, write_bytes_atomic
 from . import stats
 
 
-def _fig(path, draw, size=(5.5, 4.0)):
+def save_figure(path, draw, size=(5.5, 4.0), dpi=110):
+    """Draw on one matplotlib axis (``draw(ax)``, Agg backend) and write a PNG atomically."""
     import matplotlib
 
     matplotlib.use("Agg")
@@ -23,7 +24,7 @@ def _fig(path, draw, size=(5.5, 4.0)):
         draw(ax)
         fig.tight_layout()
         with atomic_path(path) as tmp:
-            fig.savefig(tmp, format="png", dpi=110)
+            fig.savefig(tmp, format="png", dpi=dpi)
     finally:
         plt.close(fig)
 
@@ -49,7 +50,7 @@ def _plots(result, spikes, radiance, out: Path) -> list:
             ax.set_ylabel("spikes / frame")
             ax.legend(fontsize=8)
 
-        _fig(out / "rates.png", rate_plot)
+        save_figure(out / "rates.png", rate_plot)
         names.append(("rates.png", "Per-pixel rate against radiance: measured, baseline, fitted model."))
         if fit.get("e") is not None:
             e = np.where(np.isfinite(fit["e"]), fit["e"], np.nan).reshape(H, W)
@@ -59,7 +60,7 @@ def _plots(result, spikes, radiance, out: Path) -> list:
                 ax.figure.colorbar(im, ax=ax, label="measured / model rate")
                 ax.set_title("per-pixel responsivity residual")
 
-            _fig(out / "residual_map.png", map_plot)
+            save_figure(out / "residual_map.png", map_plot)
             names.append(("residual_map.png", "Measured over modelled rate per pixel (gain, columns, hot pixels)."))
     s = spikes[:Tf].reshape(Tf, -1).sum(axis=1).astype(np.float64)
 
@@ -70,7 +71,7 @@ def _plots(result, spikes, radiance, out: Path) -> list:
         ax.set_xlabel("frequency (1 / frames)")
         ax.set_ylabel("power of the population signal")
 
-    _fig(out / "spectrum.png", spectrum_plot)
+    save_figure(out / "spectrum.png", spectrum_plot)
     names.append(("spectrum.png", "Temporal spectrum of the population signal (flicker shows as a line)."))
     ps = stats.pixel_stats(spikes[:Tf])
 
@@ -81,7 +82,7 @@ def _plots(result, spikes, radiance, out: Path) -> list:
         ax.set_xlabel("inter-spike interval (frames)")
         ax.set_ylabel("count")
 
-    _fig(out / "isi.png", isi_plot)
+    save_figure(out / "isi.png", isi_plot)
     names.append(("isi.png", "Pooled inter-spike-interval histogram of the fit frames."))
     return names
 
