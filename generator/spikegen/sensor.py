@@ -268,10 +268,6 @@ class ChargeSchedule:
             out[a:b] += U
         return out
 
-    def dense_uint32(self) -> np.ndarray:
-        """All frames as ``uint32 [T, P]``; exact for pixels that do not saturate (wrapping
-        arithmetic is exact because their true charge lies in ``[0, 2**32)``)."""
-        return self.dense_int64().astype(np.uint32)
 
 
 # ---------------------------------------------------------------------- readout
