@@ -110,12 +110,24 @@ def test_resume_after_sigkill(dataset, tmp_path):
         time.sleep(0.2)
     proc.kill()
     proc.wait()
-    assert not list(run.glob("*.part"))  # no half-written checkpoint left under any name we read
+    # A kill may land mid-write: its temporary (.checkpoint.pt.*.part) may remain, but the name we
+    # read only ever appears by rename, so checkpoint.pt is whole.
+    assert all(p.name.startswith(".checkpoint.pt.") for p in run.glob("*.part"))
     killed_at = torch.load(run / "checkpoint.pt", weights_only=False)["iteration"]
     done = subprocess.run(cmd, capture_output=True, text=True, timeout=300)  # the same command again
     assert done.returncode == 0, done.stderr
     assert killed_at == 40 or f"resuming from {run / 'checkpoint.pt'} at iteration {killed_at}" in done.stderr
     assert torch.load(run / "checkpoint.pt", weights_only=False)["iteration"] == 40
+    assert not list(run.glob("*.part"))  # the resumed run cleared what the killed one left
+
+
+def test_resume_clears_a_killed_writes_temporary(dataset, tmp_path):
+    run = tmp_path / "t"
+    train(_cfg(dataset, iters=4, checkpoint_every=2), run, progress=False, log=lambda m: None, stop_at=2)
+    (run / ".checkpoint.pt.x1y2z3.part").write_bytes(b"half a checkpoint")  # what SIGKILL mid-save leaves
+    train(_cfg(dataset, iters=4, checkpoint_every=2), run, progress=False, log=lambda m: None)
+    assert not list(run.glob("*.part"))
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["iteration"] == 4
 
 
 def test_nan_loss_stops_and_keeps_last_checkpoint(dataset, tmp_path):

@@ -31,8 +31,9 @@ from .presets import get_sensor
 from .seeding import view_seed
 from .sensor import Sensor, simulate
 from .sensorfile import save_sensor
-from .spikeio import (LUMA, atomic_path, check_radiance, exr_size, exr_to_radiance, read_exr, read_png, sha256_file,
-                      srgb_to_linear, linear_to_srgb, write_dat, write_json_atomic, write_png)
+from .spikeio import (LUMA, atomic_path, check_radiance, exr_size, exr_to_radiance, read_exr, read_png,
+                      remove_stale_parts, sha256_file, srgb_to_linear, linear_to_srgb, write_dat, write_json_atomic,
+                      write_png)
 
 SPLITS = ("train", "val", "test")
 READOUT_HZ = 20000
@@ -374,8 +375,7 @@ def _finish(out: Path, src: Source, params: dict, sensor: Sensor) -> None:
                           for v in views]}
         write_json_atomic(out / f"transforms_{split}.json", doc)
     save_sensor(sensor, out / "sensor")
-    for stale in out.rglob(".*.part"):  # temporaries of writes killed in an earlier run (atomic_path names)
-        stale.unlink(missing_ok=True)
+    remove_stale_parts(out, recursive=True)  # temporaries of writes killed in an earlier run
     files = sorted(p for p in out.rglob("*") if p.is_file() and not p.name.startswith(".")
                    and p.name != "manifest.json")
     entries = [{"path": p.relative_to(out).as_posix(), "bytes": p.stat().st_size, "sha256": sha256_file(p)}

@@ -59,6 +59,21 @@ def atomic_path(dest):
         raise
 
 
+def remove_stale_parts(folder, recursive: bool = False) -> int:
+    """Delete temporaries (``.<name>.*.part``) that writes killed in an earlier run left in ``folder``.
+
+    A process killed by SIGKILL cannot clean up after :func:`atomic_path`; its temporary is never
+    read (the real name only ever appears by rename), so a resumed run removes it. Returns the count.
+    """
+    folder = Path(folder)
+    if not folder.is_dir():
+        return 0
+    found = list(folder.rglob(".*.part") if recursive else folder.glob(".*.part"))
+    for stale in found:
+        _silent_unlink(stale)
+    return len(found)
+
+
 def _silent_unlink(path):
     try:
         os.unlink(path)

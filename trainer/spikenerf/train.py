@@ -15,7 +15,7 @@ import torch
 from tqdm import tqdm
 
 from spikegen.errors import InputError, SpikegenError
-from spikegen.spikeio import atomic_path, write_json_atomic
+from spikegen.spikeio import atomic_path, remove_stale_parts, write_json_atomic
 
 from . import neuron
 from .data import load_dataset
@@ -186,6 +186,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
         log(f"{ds.root}: no test split; holding out every 8th train view "
             f"({len(ds.splits['test'])} views) for evaluation")
     out.mkdir(parents=True, exist_ok=True)
+    remove_stale_parts(out)  # a run killed while writing a checkpoint leaves its temporary behind
     ck_path = out / CHECKPOINT
     tg = build_targets(ds, method, H, W, progress=progress)
     batch = Batch(tg, device)
