@@ -3,7 +3,7 @@ extended (`calibrated`) sensor, once with the matching sensor in the loss (`spik
 dark current of the dataset's sensor.npz) and once with the baseline (`spikenerf-noR`), and
 print the PSNR difference on the held-out views.
 
-    OMP_NUM_THREADS=1 python bench/bench_downstream.py [--resolution 100] [--intensity 32] [--out /tmp/downstream]
+    python bench/bench_downstream.py [--resolution 100] [--intensity 32] [--out /tmp/downstream]
 """
 from __future__ import annotations
 

@@ -1,8 +1,8 @@
 """Rendering speed and the choice of the default Cycles samples (docs/rendering.md).
 
-    python bench/bench_render.py speed  [--scenes lego,mic] [--views 2] [--resolution 400] [--samples N]
+    python bench/bench_render.py speed  [--scenes lego,mic] [--views 2] [--resolution 400] [--samples N] [--denoise 0/1]
     python bench/bench_render.py noise  [--scenes ...] [--samples 1,2,4,8,16] [--reference 512]
-                                        [--subframes 16] [--motion 1.0] [--resolution 200]
+                                        [--subframes 16] [--motion 1.0] [--resolution 200] [--denoise 1,2,4]
 
 speed: seconds per view (K = 16 sub-frames as EXR + the ground-truth PNG) at the default
 settings, per scene, after the scene is built (build time printed apart); wall-clock and CPU
@@ -48,10 +48,12 @@ def radiance(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(exr_to_radiance(rgba) + (1.0 - rgba[:, :, 3]), 0.0, X_MAX), rgba[:, :, 3]
 
 
-def speed(scenes, views: int, resolution: int, samples: int | None = None) -> None:
-    job = RenderJob("x") if samples is None else RenderJob("x", samples=samples)
+def speed(scenes, views: int, resolution: int, samples: int | None = None, denoise: bool | None = None) -> None:
+    job = RenderJob("x")
+    job = RenderJob("x", samples=job.samples if samples is None else samples,
+                    denoise=job.denoise if denoise is None else denoise)
     print(f"# seconds per view: {job.subframes} sub-frames (EXR) + 1 PNG at {resolution} x {resolution}, "
-          f"samples {job.samples} (PNG {job.png_samples}), {views} views per scene")
+          f"samples {job.samples} (PNG {job.png_samples}), denoise {job.denoise}, {views} views per scene")
     print(f"# load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     print(f"{'scene':<10} {'build s':>8} {'s/view':>8} {'cpu s/view':>11} {'s/image':>8}")
     rig = cm.make_views("train", views, job.subframes, job.motion_deg)
@@ -61,7 +63,7 @@ def speed(scenes, views: int, resolution: int, samples: int | None = None) -> No
             t0 = time.perf_counter()
             scene, camera = build_bpy_scene(build_scene(name))
             r = BlenderRenderer(scene, camera, RenderSettings(resolution, resolution, samples=job.samples,
-                                                              png_samples=job.png_samples))
+                                                              png_samples=job.png_samples, denoise=job.denoise))
             build = time.perf_counter() - t0
             t0, c0 = time.perf_counter(), time.process_time()
             for v in rig:
@@ -89,27 +91,33 @@ def spike_noise(x_ref: np.ndarray, mask: np.ndarray, window: int, intensity: flo
     return float(np.sqrt(np.mean((x_hat - x_ref)[mask] ** 2)))
 
 
-def noise(scenes, samples_list, reference: int, resolution: int, subframes: int, motion_deg: float) -> None:
+def noise(scenes, samples_list, reference: int, resolution: int, subframes: int, motion_deg: float,
+          denoised: list | None = None) -> None:
+    """Columns N=...: raw renders; D=...: the same samples through the denoiser (``denoised``)."""
+    denoised = denoised or []
     view = cm.make_views("train", 1, subframes, motion_deg)[0]
     print(f"# RMS error in X over object pixels of the mean of {subframes} sub-frames (motion {motion_deg} deg), "
           f"{resolution} x {resolution}, reference {reference} samples; X clipped to 0..{X_MAX:g}")
     print(f"{'scene':<10} " + " ".join(f"{'N=' + str(s):>8}" for s in samples_list)
-          + f" {'TFP256@64':>10} {'TFP32@64':>9}")
+          + "".join(f" {'D=' + str(s):>8}" for s in denoised) + f" {'TFP256@64':>10} {'TFP32@64':>9}")
     with tempfile.TemporaryDirectory() as tmp:
         for name in scenes:
             scene, camera = build_bpy_scene(build_scene(name))
-            out = {s: _mean_subframes(scene, camera, view, s, resolution, Path(tmp))
+            out = {(s, False): _mean_subframes(scene, camera, view, s, resolution, Path(tmp))
                    for s in [reference, *samples_list]}
-            x_ref, alpha = out[reference]
+            out.update({(s, True): _mean_subframes(scene, camera, view, s, resolution, Path(tmp), True)
+                        for s in denoised})
+            x_ref, alpha = out[reference, False]
             mask = alpha > 0.5
-            errs = [float(np.sqrt(np.mean((out[s][0] - x_ref)[mask] ** 2))) for s in samples_list]
+            errs = [float(np.sqrt(np.mean((out[key][0] - x_ref)[mask] ** 2)))
+                    for key in [(s, False) for s in samples_list] + [(s, True) for s in denoised]]
             print(f"{name:<10} " + " ".join(f"{e:8.4f}" for e in errs) + f" {spike_noise(x_ref, mask, 256):10.4f}"
                   f" {spike_noise(x_ref, mask, 32):9.4f}", flush=True)
 
 
-def _mean_subframes(scene, camera, view, samples: int, resolution: int, tmp: Path):
+def _mean_subframes(scene, camera, view, samples: int, resolution: int, tmp: Path, denoise: bool = False):
     """(mean X [H, W], mean alpha [H, W]) of the view's sub-frames rendered with ``samples``."""
-    r = BlenderRenderer(scene, camera, RenderSettings(resolution, resolution, samples=samples))
+    r = BlenderRenderer(scene, camera, RenderSettings(resolution, resolution, samples=samples, denoise=denoise))
     r.set_view_seed(view_render_seed(0, "train", 0))
     xs, alphas = [], []
     for k, pose in enumerate(view.subframe_poses):
@@ -129,6 +137,8 @@ def main() -> None:
     ap.add_argument("--samples", default=None, help="noise: list (default 1,2,4,8,16); speed: one N "
                     "(default: the render default)")
     ap.add_argument("--reference", type=int, default=512)
+    ap.add_argument("--denoise", default=None, help="noise: samples to also render denoised (list, e.g. 1,2,4); "
+                    "speed: 1 or 0 (default: the render default)")
     ap.add_argument("--subframes", type=int, default=16, help="noise: sub-frames averaged (1 = one static frame)")
     ap.add_argument("--motion", type=float, default=cm.DEFAULT_MOTION_DEG, help="noise: camera motion (deg)")
     a = ap.parse_args()
@@ -136,10 +146,11 @@ def main() -> None:
     a.samples = a.samples or "1,2,4,8,16"
     scenes = [s for s in a.scenes.split(",") if s]
     if a.what == "speed":
-        speed(scenes, a.views, a.resolution or 400, int(a.samples) if a.samples_given else None)
+        speed(scenes, a.views, a.resolution or 400, int(a.samples) if a.samples_given else None,
+              None if a.denoise is None else bool(int(a.denoise)))
     else:
         noise(scenes, [int(s) for s in a.samples.split(",")], a.reference, a.resolution or 200, a.subframes,
-              a.motion)
+              a.motion, [int(s) for s in a.denoise.split(",")] if a.denoise else [])
 
 
 if __name__ == "__main__":

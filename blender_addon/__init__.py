@@ -15,10 +15,11 @@ from __future__ import annotations
 import threading
 
 import bpy
-from bpy.props import FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 DEFAULTS = {"intensities": "16,32,64", "resolution": 400, "views_train": 100, "views_val": 100,
-            "views_test": 200, "subframes": 16, "frames": 256, "motion_deg": 1.0, "samples": 8, "seed": 0}
+            "views_test": 200, "subframes": 16, "frames": 256, "motion_deg": 1.0, "samples": 8, "denoise": False,
+            "seed": 0}
 
 
 def _properties():
@@ -36,6 +37,8 @@ def _properties():
         "motion_deg": FloatProperty(name="Motion (deg)", default=DEFAULTS["motion_deg"], min=0.0, max=90.0,
                                     description="Camera orbit about world Z during each view's frames; 0 = static"),
         "samples": IntProperty(name="Samples", default=DEFAULTS["samples"], min=1, max=65536),
+        "denoise": BoolProperty(name="Denoise", default=DEFAULTS["denoise"],
+                                description="OpenImageDenoise on every image (see docs/rendering.md)"),
         "seed": IntProperty(name="Seed", default=DEFAULTS["seed"], min=0),
         "sensor": StringProperty(name="Sensor", default="paper",
                                  description="ideal, paper, rsir, calibrated, or a sensor .json path"),
@@ -93,13 +96,13 @@ class ExportSession:
         res = props.resolution
         job = RenderJob(name, res, res, (props.views_train, props.views_val, props.views_test), props.subframes,
                         props.frames, props.motion_deg, "cycles", props.samples, max(16, props.samples),
-                        props.seed, camera_angle_x(camera, res, res), source)
+                        props.seed, camera_angle_x(camera, res, res), source, props.denoise)
         check_job(job)
         self.folder = RenderFolder.open(self.out, job)
         self.total = len(self.folder.pending()) * images_per_view(job)
         self.done = 0
         self.saved = save_settings(scene, camera)
-        settings = RenderSettings(res, res, "cycles", job.samples, job.png_samples)
+        settings = RenderSettings(res, res, "cycles", job.samples, job.png_samples, denoise=job.denoise)
         self.steps = render_steps(self.folder, BlenderRenderer(scene, camera, settings, quiet=False))
         self.thread, self.error, self.result, self.stop = None, None, None, threading.Event()
 

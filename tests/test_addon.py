@@ -90,8 +90,7 @@ def test_cancel_leaves_no_partial_view(addon, tmp_path):
     build_bpy_scene(build_scene("ficus"))
     scene = bpy.context.scene
     scene.render.resolution_x = 77
-    props = SimpleNamespace(directory=str(tmp_path), sensor="paper", dataset_name="", motion_deg=1.0, **SMALL)
-    session = addon.ExportSession(props, bpy.context)
+    session = addon.ExportSession(_props(tmp_path), bpy.context)
     assert session.total == 4 * 3  # 4 views x (2 sub-frames + PNG)
     for _ in range(4):  # view 0 done (3 images), 1 image of view 1
         assert session.step()
@@ -101,3 +100,93 @@ def test_cancel_leaves_no_partial_view(addon, tmp_path):
     doc = json.loads((folder / "render.json").read_text())
     assert [e["index"] for e in doc["splits"]["train"]] == [0]
     assert sorted(p.name for p in (folder / "train").iterdir()) == ["r_0.png", "r_0_sub00.exr", "r_0_sub01.exr"]
+
+
+def _props(tmp_path):
+    return SimpleNamespace(directory=str(tmp_path), sensor="paper", dataset_name="", motion_deg=1.0, denoise=False,
+                           **SMALL)
+
+
+class _FakeWindowManager:
+    def __init__(self):
+        self.progress, self.ended, self.timers_removed = [], False, []
+
+    def progress_update(self, value):
+        self.progress.append(value)
+
+    def progress_end(self):
+        self.ended = True
+
+    def event_timer_remove(self, timer):
+        self.timers_removed.append(timer)
+
+
+class _FakeWorkspace:
+    def __init__(self):
+        self.status = []
+
+    def status_text_set(self, text):
+        self.status.append(text)
+
+
+def _modal_operator(addon, session):
+    """The operator's own modal(), _render_tick() and _end() on a stand-in for the Blender operator
+    (a modal operator needs a window's event loop, which headless Blender has not)."""
+    cls = addon.EXPORT_SCENE_OT_spike_dataset
+
+    class Op:
+        modal, _render_tick, _end = cls.modal, cls._render_tick, cls._end
+
+        def __init__(self):
+            self._session, self._timer, self.reports = session, "timer", []
+
+        def report(self, level, message):
+            self.reports.append((set(level), message))
+
+    ctx = SimpleNamespace(window_manager=_FakeWindowManager(), workspace=_FakeWorkspace())
+    return Op(), ctx
+
+
+def test_modal_operator_shows_progress_and_finishes(addon, tmp_path):
+    import time
+
+    from spikegen.dataset import verify
+
+    build_bpy_scene(build_scene("hotdog"))
+    session = addon.ExportSession(_props(tmp_path), bpy.context)
+    op, ctx = _modal_operator(addon, session)
+    timer, other = SimpleNamespace(type="TIMER"), SimpleNamespace(type="MOUSEMOVE")
+    assert op.modal(ctx, other) == {"PASS_THROUGH"}  # the interface stays responsive
+    deadline = time.time() + 120
+    result = {"RUNNING_MODAL"}
+    while result == {"RUNNING_MODAL"} and time.time() < deadline:
+        result = op.modal(ctx, timer)
+        time.sleep(0.01)
+    assert result == {"FINISHED"}, op.reports
+    wm = ctx.window_manager
+    # one step per image, in order; the tick that finds rendering finished reports the total again
+    assert wm.progress == [*range(1, session.total + 1), session.total]
+    assert wm.ended and wm.timers_removed == ["timer"] and op._timer is None
+    assert ctx.workspace.status[0] == f"Spike dataset: image 1 / {session.total}"
+    assert "converting to spikes" in ctx.workspace.status[-2] and ctx.workspace.status[-1] is None
+    assert op.reports[-1][0] == {"INFO"} and "scene_i16" in op.reports[-1][1]
+    assert verify(tmp_path / "scene_i16") == [] and verify(tmp_path / "scene_i32") == []
+
+
+def test_modal_operator_esc_cancels_and_leaves_no_partial_view(addon, tmp_path):
+    build_bpy_scene(build_scene("chair"))
+    scene = bpy.context.scene
+    scene.render.resolution_x = 91
+    session = addon.ExportSession(_props(tmp_path), bpy.context)
+    op, ctx = _modal_operator(addon, session)
+    for _ in range(5):  # view 0 (3 images) and 2 images of view 1
+        assert op.modal(ctx, SimpleNamespace(type="TIMER")) == {"RUNNING_MODAL"}
+    assert op.modal(ctx, SimpleNamespace(type="ESC")) == {"CANCELLED"}
+    assert ctx.window_manager.ended and ctx.window_manager.timers_removed == ["timer"]
+    assert op.reports[-1][0] == {"WARNING"} and "cancelled" in op.reports[-1][1]
+    assert scene.render.resolution_x == 91  # the user's settings are back
+    folder = tmp_path / "scene_render"
+    assert [e["index"] for e in json.loads((folder / "render.json").read_text())["splits"]["train"]] == [0]
+    assert sorted(p.name for p in (folder / "train").iterdir()) == ["r_0.png", "r_0_sub00.exr", "r_0_sub01.exr"]
+    assert not any(p.name.endswith(".part") for p in folder.rglob("*"))
+    assert not (tmp_path / "scene_i16").exists()

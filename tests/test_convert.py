@@ -104,3 +104,16 @@ def test_existing_folder_of_another_job_is_not_overwritten(tmp_path, capsys):
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "other parameters" in err
     assert before == {p: p.read_bytes() for p in d.rglob("*") if p.is_file()}
+
+
+def test_lower_resolution_is_the_pixel_area_mean():
+    """A sensor pixel integrates the light on its area: --resolution block-averages (no ringing)."""
+    from spikegen.dataset import _resize
+
+    rng = np.random.default_rng(3)
+    img = (rng.random((64, 64)) < 0.5).astype(np.float32) * 4.0  # sharp edges everywhere
+    small = _resize(img, 16)
+    np.testing.assert_allclose(small, img.reshape(16, 4, 16, 4).mean(axis=(1, 3)), atol=1e-6)
+    odd = _resize(img, 24)  # not an integer factor: area weights, still within the input's range
+    assert odd.shape == (24, 24) and odd.min() >= 0.0 and odd.max() <= 4.0
+    assert abs(float(odd.mean()) - float(img.mean())) < 0.05  # area weights keep the mean (random input: ~1 %)

@@ -172,6 +172,28 @@ def test_blend_file_is_rendered_under_its_name(tmp_path):
     assert (tmp_path / "o" / "myscene_i16" / "manifest.json").is_file()
 
 
+def test_denoise_is_recorded_reproducible_and_smoother(tmp_path):
+    """--denoise: render.json says so, a folder made without it refuses it, two runs give the same
+    bytes, and the image is smoother than the raw render of the same samples."""
+    from spikegen.errors import OutputError
+
+    raw = _render(tmp_path / "raw", RenderJob("lego", views=(1, 0, 0), **SMALL))
+    den = [_render(tmp_path / d, RenderJob("lego", views=(1, 0, 0), denoise=True, **SMALL)) for d in "ab"]
+    assert json.loads((den[0].path / "render.json").read_text())["denoise"] is True
+    assert json.loads((raw.path / "render.json").read_text())["denoise"] is False
+    with pytest.raises(OutputError, match="other settings"):
+        RenderFolder.open(tmp_path / "raw", RenderJob("lego", views=(1, 0, 0), denoise=True, **SMALL))
+    name = "train/r_0_sub00.exr"
+    assert (den[0].path / name).read_bytes() == (den[1].path / name).read_bytes()
+
+    def roughness(img):  # mean absolute Laplacian of the luminance, inside the object
+        y = img[:, :, :3].mean(axis=2)
+        lap = np.abs(4 * y[1:-1, 1:-1] - y[:-2, 1:-1] - y[2:, 1:-1] - y[1:-1, :-2] - y[1:-1, 2:])
+        return lap[img[1:-1, 1:-1, 3] > 0.99].mean()
+
+    assert roughness(read_exr(den[0].path / name)) < 0.8 * roughness(read_exr(raw.path / name))
+
+
 def test_thread_count_does_not_change_the_bytes(tmp_path):
     scene, camera = build_bpy_scene(build_scene("materials"))
     pose = cm.make_views("train", 1)[0].pose

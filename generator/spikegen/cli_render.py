@@ -33,6 +33,8 @@ from .scenes import SCENES
               help="Cycles samples per sub-frame (the same noise pattern in every sub-frame of a view).")
 @click.option("--png-samples", type=int, default=RenderJob.png_samples, show_default=True,
               help="Cycles samples of the ground-truth PNG.")
+@click.option("--denoise/--no-denoise", default=RenderJob.denoise, show_default=True,
+              help="OpenImageDenoise on every image (a deterministic function of the image).")
 @click.option("--engine", type=click.Choice(["cycles", "workbench"]), default="cycles", show_default=True,
               help="cycles (default) or workbench (quick previews).")
 @click.option("--blend", type=click.Path(path_type=Path), default=None, help="Render this .blend instead.")
@@ -43,7 +45,7 @@ from .scenes import SCENES
 @click.option("--scheduler", default=None, help="Dask scheduler address for conversion.")
 @click.option("--quick", is_flag=True, help="Small and fast: 100 x 100, views 20,4,8 (unless given).")
 def render(scene, intensities, out_dir, resolution, views, subframes, frames, motion_deg, samples, png_samples,
-           engine, blend, sensor, seed, workers, scheduler, quick):
+           denoise, engine, blend, sensor, seed, workers, scheduler, quick):
     """Render a scene through Blender and write <out>/<scene>_i<I>/ for each intensity."""
     from .dataset import check_intensity
 
@@ -52,7 +54,7 @@ def render(scene, intensities, out_dir, resolution, views, subframes, frames, mo
     res = resolution or (QUICK["resolution"] if quick else 400)
     counts = parse_views(views) if views else (QUICK["views"] if quick else (100, 100, 200))
     job = RenderJob(name, res, res, counts, subframes, frames, motion_deg, engine, samples, png_samples, seed,
-                    source=source)
+                    source=source, denoise=denoise)
     check_job(job)
     _check_conversion(sensor, res, seed, workers)
     client = None

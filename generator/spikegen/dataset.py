@@ -188,13 +188,15 @@ def _open_render(root: Path) -> Source:
 
 # ---------------------------------------------------------------------- per view
 def _resize(plane: np.ndarray, size: int) -> np.ndarray:
-    """Area/Lanczos resize of a float plane to size x size (PIL 'F' mode)."""
+    """Area-average resize of a float plane to size x size: a sensor pixel integrates the light
+    falling on its area, so each output pixel is the mean over its footprint (PIL's BOX filter:
+    exact block means for integer factors, area weights otherwise; no ringing, no negatives)."""
     from PIL import Image
 
     if plane.shape == (size, size):
         return plane
     im = Image.fromarray(np.ascontiguousarray(plane, dtype=np.float32), mode="F")
-    return np.asarray(im.resize((size, size), Image.Resampling.LANCZOS), dtype=np.float32)
+    return np.asarray(im.resize((size, size), Image.Resampling.BOX), dtype=np.float32)
 
 
 def _load_view(src_kind: str, view: View, resolution: int | None):

@@ -31,7 +31,7 @@ from .spikeio import sha256_file, write_json_atomic
 RENDER_FORMAT = "spikegen-render/1"
 QUICK = {"resolution": 100, "views": (20, 4, 8)}  # --quick: a small dataset in well under 5 minutes
 HEADER_KEYS = ("format", "scene", "camera_angle_x", "width", "height", "subframes", "frames", "motion_deg",
-               "engine", "samples", "png_samples", "seed", "views", "source")
+               "engine", "samples", "png_samples", "denoise", "seed", "views", "source")
 
 
 @dataclass(frozen=True)
@@ -51,6 +51,7 @@ class RenderJob:
     seed: int = 0
     camera_angle_x: float = CAMERA_ANGLE_X
     source: str = "builtin"  # "builtin", or "blend:<sha256>"
+    denoise: bool = False  # OpenImageDenoise on each image (docs/rendering.md)
 
     def header(self) -> dict:
         """render.json without its views."""

@@ -51,6 +51,8 @@ class RenderSettings:
     png_samples: int = 16
     threads: int = 0
     max_bounces: int = 4
+    denoise: bool = False  # OpenImageDenoise (fast quality) on every image, sub-frames and PNG
+
 
     def thread_count(self) -> int:
         return self.threads or (os.cpu_count() or 1)
@@ -244,7 +246,10 @@ def _configure_cycles(scene, settings: RenderSettings) -> None:
     c.device = "CPU"
     c.samples = settings.samples
     c.use_adaptive_sampling = False
-    c.use_denoising = False
+    c.use_denoising = bool(settings.denoise)
+    if settings.denoise:  # deterministic: a pure function of the (noisy) image and its passes
+        c.denoiser, c.denoising_input_passes = "OPENIMAGEDENOISE", "RGB_ALBEDO_NORMAL"
+        c.denoising_prefilter, c.denoising_quality, c.denoising_use_gpu = "FAST", "FAST", False
     c.use_animated_seed = False
     c.use_auto_tile = False
     c.max_bounces = settings.max_bounces
@@ -270,7 +275,8 @@ SAVED = ("render.engine", "render.resolution_x", "render.resolution_y", "render.
          "render.use_motion_blur", "render.filepath", "render.image_settings.file_format",
          "render.image_settings.color_mode", "render.image_settings.color_depth", "view_settings.view_transform",
          "view_settings.look", "view_settings.exposure", "view_settings.gamma", "cycles.samples",
-         "cycles.use_adaptive_sampling", "cycles.use_denoising", "cycles.use_animated_seed", "cycles.seed",
+         "cycles.use_adaptive_sampling", "cycles.use_denoising", "cycles.denoiser", "cycles.denoising_input_passes",
+         "cycles.denoising_prefilter", "cycles.denoising_quality", "cycles.denoising_use_gpu", "cycles.use_animated_seed", "cycles.seed",
          "cycles.max_bounces", "cycles.diffuse_bounces", "cycles.glossy_bounces", "cycles.transmission_bounces",
          "cycles.transparent_max_bounces", "cycles.caustics_reflective", "cycles.caustics_refractive",
          "cycles.device", "cycles.use_auto_tile", "cycles.use_guiding", "cycles.pixel_filter_type",
@@ -434,5 +440,6 @@ def renderer_for(job, blend=None, quiet: bool = True) -> "BlenderRenderer":
         scene, camera = open_blend(blend)
     else:
         scene, camera = build_bpy_scene(build_scene(job.scene))
-    settings = RenderSettings(job.width, job.height, job.engine, job.samples, job.png_samples)
+    settings = RenderSettings(job.width, job.height, job.engine, job.samples, job.png_samples,
+                              denoise=job.denoise)
     return BlenderRenderer(scene, camera, settings, quiet=quiet)

@@ -34,7 +34,7 @@ def main():
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--method", default=DEFAULT_METHOD, show_default=True, type=click.Choice(list(METHODS)),
               help="Supervision: the paper's, its ablation, the TFP/TFI baselines, or the project's best.")
-@click.option("--iters", default=1200, show_default=True, type=click.IntRange(min=1), help="Training iterations.")
+@click.option("--iters", default=3000, show_default=True, type=click.IntRange(min=1), help="Training iterations.")
 @click.option("--device", default="auto", show_default=True, type=click.Choice(["auto", "cpu", "cuda"]))
 @click.option("--resolution", default=0, type=click.IntRange(min=0),
               help="Train at this width (must divide the dataset's); 0 = the dataset's.")

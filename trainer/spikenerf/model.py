@@ -79,8 +79,10 @@ class GridField(nn.Module):
     def occupied(self, points: torch.Tensor) -> torch.Tensor:
         """bool [M]: the nearest grid point of each world point is marked occupied."""
         G = self.occupancy.shape[0]
-        idx = ((points / self.bound + 1) * 0.5 * (G - 1)).round().long().clamp(0, G - 1)
-        return self.occupancy[idx[:, 0], idx[:, 1], idx[:, 2]]
+        half = 0.5 * (G - 1)
+        idx = (points * (half / self.bound) + half).round_().clamp_(0, G - 1).long()
+        flat = (idx[:, 0] * G + idx[:, 1]) * G + idx[:, 2]
+        return self.occupancy.reshape(-1)[flat]
 
     @torch.no_grad()
     def update_occupancy(self, threshold: float = 1e-4) -> float:

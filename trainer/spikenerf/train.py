@@ -37,7 +37,7 @@ class TrainError(SpikegenError):
 class TrainConfig:
     dataset: str
     method: str = "spikelik"
-    iters: int = 1200
+    iters: int = 3000
     device: str = "auto"
     resolution: int = 0  # 0 = the dataset's
     seed: int = 0
@@ -88,7 +88,7 @@ def make_field(cfg: TrainConfig, width: int) -> GridField:
 
 def make_optimizer(field: GridField, cfg: TrainConfig) -> torch.optim.Optimizer:
     return torch.optim.Adam([{"params": [field.grid], "lr": cfg.lr_grid},
-                             {"params": field.mlp.parameters(), "lr": cfg.lr_mlp}], betas=(0.9, 0.99))
+                             {"params": field.mlp.parameters(), "lr": cfg.lr_mlp}], betas=(0.9, 0.99), fused=True)
 
 
 def learning_rate_factor(it: int, iters: int) -> float:
