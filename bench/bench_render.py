@@ -49,9 +49,8 @@ def radiance(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def speed(scenes, views: int, resolution: int, samples: int | None = None, denoise: bool | None = None) -> None:
-    job = RenderJob("x")
-    job = RenderJob("x", samples=job.samples if samples is None else samples,
-                    denoise=job.denoise if denoise is None else denoise)
+    given = {"samples": samples, "denoise": denoise}
+    job = RenderJob("x", **{k: v for k, v in given.items() if v is not None})
     print(f"# seconds per view: {job.subframes} sub-frames (EXR) + 1 PNG at {resolution} x {resolution}, "
           f"samples {job.samples} (PNG {job.png_samples}), denoise {job.denoise}, {views} views per scene")
     print(f"# load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
@@ -62,8 +61,7 @@ def speed(scenes, views: int, resolution: int, samples: int | None = None, denoi
         for name in scenes:
             t0 = time.perf_counter()
             scene, camera = build_bpy_scene(build_scene(name))
-            r = BlenderRenderer(scene, camera, RenderSettings(resolution, resolution, samples=job.samples,
-                                                              png_samples=job.png_samples, denoise=job.denoise))
+            r = BlenderRenderer(scene, camera, RenderSettings.for_job(job, width=resolution, height=resolution))
             build = time.perf_counter() - t0
             t0, c0 = time.perf_counter(), time.process_time()
             for v in rig:

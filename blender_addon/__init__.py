@@ -17,9 +17,13 @@ import threading
 import bpy
 from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-DEFAULTS = {"intensities": "16,32,64", "resolution": 400, "views_train": 100, "views_val": 100,
-            "views_test": 200, "subframes": 16, "frames": 256, "motion_deg": 1.0, "samples": 8, "denoise": False,
-            "seed": 0}
+from spikegen.render import RenderJob  # the project's wheel, installed with the extension (no bpy)
+
+_JOB = RenderJob("defaults")  # the add-on's defaults are `spikegen render`'s
+DEFAULTS = {"intensities": "16,32,64", "resolution": _JOB.width, "views_train": _JOB.views[0],
+            "views_val": _JOB.views[1], "views_test": _JOB.views[2], "subframes": _JOB.subframes,
+            "frames": _JOB.frames, "motion_deg": _JOB.motion_deg, "samples": _JOB.samples, "denoise": _JOB.denoise,
+            "seed": _JOB.seed}
 
 
 def _properties():
@@ -85,7 +89,7 @@ class ExportSession:
     """One export, advanced a step (one image) at a time; shared by modal and background runs."""
 
     def __init__(self, props, context):
-        from spikegen.render import RenderFolder, RenderJob, check_job, images_per_view, render_steps
+        from spikegen.render import RenderFolder, check_job, images_per_view, render_steps
         from spikegen.render_blender import BlenderRenderer, RenderSettings, camera_angle_x, save_settings
 
         scene, camera = context.scene, context.scene.camera
@@ -95,15 +99,16 @@ class ExportSession:
         name, source = _dataset_name(props, scene)
         res = props.resolution
         job = RenderJob(name, res, res, (props.views_train, props.views_val, props.views_test), props.subframes,
-                        props.frames, props.motion_deg, "cycles", props.samples, max(16, props.samples),
+                        props.frames, props.motion_deg, "cycles", props.samples,
+                        max(RenderJob.png_samples, props.samples),
                         props.seed, camera_angle_x(camera, res, res), source, props.denoise)
         check_job(job)
         self.folder = RenderFolder.open(self.out, job)
         self.total = len(self.folder.pending()) * images_per_view(job)
         self.done = 0
         self.saved = save_settings(scene, camera)
-        settings = RenderSettings(res, res, "cycles", job.samples, job.png_samples, denoise=job.denoise)
-        self.steps = render_steps(self.folder, BlenderRenderer(scene, camera, settings, quiet=False))
+        self.steps = render_steps(self.folder, BlenderRenderer(scene, camera, RenderSettings.for_job(job),
+                                                               quiet=False))
         self.thread, self.error, self.result, self.stop = None, None, None, threading.Event()
 
     def step(self) -> bool:

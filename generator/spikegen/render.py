@@ -26,7 +26,7 @@ from pathlib import Path
 
 from .camera import CAMERA_ANGLE_X, DEFAULT_MOTION_DEG, SPLITS, View, make_rig
 from .errors import InputError, OutputError
-from .spikeio import sha256_file, write_json_atomic
+from .spikeio import remove_stale_parts, sha256_file, write_json_atomic
 
 RENDER_FORMAT = "spikegen-render/1"
 QUICK = {"resolution": 100, "views": (20, 4, 8)}  # --quick: a small dataset in well under 5 minutes
@@ -136,9 +136,7 @@ class RenderFolder:
         """Open (or start) ``<out_dir>/<scene>_render``; refuse one made with other settings."""
         folder = cls(render_folder(out_dir, job.scene), job, {s: {} for s in SPLITS})
         doc_path = folder.path / "render.json"
-        if folder.path.is_dir():  # temporaries of writes cut short by a kill: never finished files
-            for stale in folder.path.rglob(".*.part"):
-                stale.unlink(missing_ok=True)
+        remove_stale_parts(folder.path, recursive=True)  # temporaries of writes cut short by a kill
         if doc_path.is_file():
             folder._resume(doc_path)
         elif folder.path.exists() and any(folder.path.iterdir()):

@@ -53,6 +53,11 @@ class RenderSettings:
     max_bounces: int = 4
     denoise: bool = False  # OpenImageDenoise (fast quality) on every image, sub-frames and PNG
 
+    @classmethod
+    def for_job(cls, job, **overrides) -> "RenderSettings":
+        """The settings a :class:`~spikegen.render.RenderJob` asks for (``overrides`` replace fields)."""
+        return cls(**{"width": job.width, "height": job.height, "engine": job.engine, "samples": job.samples,
+                      "png_samples": job.png_samples, "denoise": job.denoise, **overrides})
 
     def thread_count(self) -> int:
         return self.threads or (os.cpu_count() or 1)
@@ -275,8 +280,9 @@ SAVED = ("render.engine", "render.resolution_x", "render.resolution_y", "render.
          "render.use_motion_blur", "render.filepath", "render.image_settings.file_format",
          "render.image_settings.color_mode", "render.image_settings.color_depth", "view_settings.view_transform",
          "view_settings.look", "view_settings.exposure", "view_settings.gamma", "cycles.samples",
-         "cycles.use_adaptive_sampling", "cycles.use_denoising", "cycles.denoiser", "cycles.denoising_input_passes",
-         "cycles.denoising_prefilter", "cycles.denoising_quality", "cycles.denoising_use_gpu", "cycles.use_animated_seed", "cycles.seed",
+         "cycles.use_adaptive_sampling", "cycles.use_denoising", "cycles.denoiser",
+         "cycles.denoising_input_passes", "cycles.denoising_prefilter", "cycles.denoising_quality",
+         "cycles.denoising_use_gpu", "cycles.use_animated_seed", "cycles.seed",
          "cycles.max_bounces", "cycles.diffuse_bounces", "cycles.glossy_bounces", "cycles.transmission_bounces",
          "cycles.transparent_max_bounces", "cycles.caustics_reflective", "cycles.caustics_refractive",
          "cycles.device", "cycles.use_auto_tile", "cycles.use_guiding", "cycles.pixel_filter_type",
@@ -440,6 +446,4 @@ def renderer_for(job, blend=None, quiet: bool = True) -> "BlenderRenderer":
         scene, camera = open_blend(blend)
     else:
         scene, camera = build_bpy_scene(build_scene(job.scene))
-    settings = RenderSettings(job.width, job.height, job.engine, job.samples, job.png_samples,
-                              denoise=job.denoise)
-    return BlenderRenderer(scene, camera, settings, quiet=quiet)
+    return BlenderRenderer(scene, camera, RenderSettings.for_job(job), quiet=quiet)

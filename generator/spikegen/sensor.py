@@ -269,7 +269,6 @@ class ChargeSchedule:
         return out
 
 
-
 # ---------------------------------------------------------------------- readout
 def carry_readout(q: np.ndarray, phase: np.ndarray) -> np.ndarray:
     """Integrate-and-fire with subtractive reset, no saturation: spikes are carries.

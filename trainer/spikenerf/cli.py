@@ -8,6 +8,7 @@ import click
 
 from spikegen.errors import SpikegenError
 
+from .config import TrainConfig
 from .methods import DEFAULT_METHOD, METHODS
 
 
@@ -34,21 +35,23 @@ def main():
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--method", default=DEFAULT_METHOD, show_default=True, type=click.Choice(list(METHODS)),
               help="Supervision: the paper's, its ablation, the TFP/TFI baselines, or the project's best.")
-@click.option("--iters", default=3000, show_default=True, type=click.IntRange(min=1), help="Training iterations.")
+@click.option("--iters", default=TrainConfig.iters, show_default=True, type=click.IntRange(min=1),
+              help="Training iterations.")
 @click.option("--device", default="auto", show_default=True, type=click.Choice(["auto", "cpu", "cuda"]))
 @click.option("--resolution", default=0, type=click.IntRange(min=0),
               help="Train at this width (must divide the dataset's); 0 = the dataset's.")
 @click.option("--out", "out", type=click.Path(path_type=Path), default=None,
               help="Run folder (default runs/<dataset>_<method>). An existing checkpoint there is resumed.")
-@click.option("--seed", default=0, show_default=True, type=int)
-@click.option("--batch-rays", default=2048, show_default=True, type=click.IntRange(min=1))
-@click.option("--checkpoint-every", default=500, show_default=True, type=click.IntRange(min=1),
-              help="Save a checkpoint every N iterations (and at least every 30 s).")
+@click.option("--seed", default=TrainConfig.seed, show_default=True, type=int)
+@click.option("--batch-rays", default=TrainConfig.batch_rays, show_default=True, type=click.IntRange(min=1))
+@click.option("--checkpoint-every", default=TrainConfig.checkpoint_every, show_default=True,
+              type=click.IntRange(min=1),
+              help=f"Save a checkpoint every N iterations (and at least every {TrainConfig.checkpoint_every_s:g} s).")
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, out, seed, batch_rays, checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
-    from .train import TrainConfig, train as run_train
+    from .train import train as run_train
 
     dataset = dataset.resolve()
     out = out or Path("runs") / f"{dataset.name}_{method}"

@@ -13,8 +13,9 @@
   Gaussian likelihood with the count variance of the sensor (:func:`neuron.count_variance`),
   R and d from the dataset's sensor; when the dataset was made by the ``rsir`` reference
   generator, its exact mean charge (:func:`neuron.rsir_rate`: Poisson gray levels and the
-  uniform quantisation noise make it compressive) replaces the linear rate. For a static view (all sub-frame poses equal) the
-  windows share one pose, so it uses the whole stream as one window.
+  uniform quantisation noise make it compressive) replaces the linear rate. For a static view
+  (all sub-frame poses equal) the windows share one pose, so it uses the whole stream as one
+  window.
 """
 from __future__ import annotations
 

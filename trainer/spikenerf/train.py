@@ -5,10 +5,8 @@ a run resumed from a checkpoint continues with exactly the rays an uninterrupted
 """
 from __future__ import annotations
 
-import dataclasses
 import math
 import time
-from dataclasses import dataclass
 from pathlib import Path
 
 import torch
@@ -18,6 +16,7 @@ from spikegen.errors import InputError, SpikegenError
 from spikegen.spikeio import atomic_path, remove_stale_parts, write_json_atomic
 
 from . import neuron
+from .config import TrainConfig
 from .data import load_dataset
 from .methods import METHODS
 from .model import GridField
@@ -31,33 +30,6 @@ class TrainError(SpikegenError):
     """Training cannot go on (e.g. the loss became NaN)."""
 
     exit_code = 4
-
-
-@dataclass(frozen=True)
-class TrainConfig:
-    dataset: str
-    method: str = "spikelik"
-    iters: int = 3000
-    device: str = "auto"
-    resolution: int = 0  # 0 = the dataset's
-    seed: int = 0
-    batch_rays: int = 2048
-    lr_grid: float = 0.1
-    lr_mlp: float = 2e-3
-    grid_start: int = 32
-    grid_final: int = 0  # 0 = chosen from the image size
-    upsample_at: tuple = (0.1, 0.2, 0.3)  # fractions of iters at which the grid grows
-    occupancy_every: int = 50
-    occupancy_after: int = 100  # no pruning before this iteration (empty space must first be learned)
-    occupancy_threshold: float = 2e-2
-    tv_weight: float = 1e-4
-    checkpoint_every_s: float = 30.0
-    checkpoint_every: int = 500  # iterations (whichever comes first)
-
-    def to_json(self) -> dict:
-        d = dataclasses.asdict(self)
-        d["upsample_at"] = list(self.upsample_at)
-        return d
 
 
 def resolve_device(name: str) -> torch.device:

@@ -1,0 +1,34 @@
+"""Training settings: a plain dataclass (no torch), so the command line takes its defaults from it."""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+from .methods import DEFAULT_METHOD
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    dataset: str
+    method: str = DEFAULT_METHOD
+    iters: int = 3000
+    device: str = "auto"
+    resolution: int = 0  # 0 = the dataset's
+    seed: int = 0
+    batch_rays: int = 2048
+    lr_grid: float = 0.1
+    lr_mlp: float = 2e-3
+    grid_start: int = 32
+    grid_final: int = 0  # 0 = chosen from the image size
+    upsample_at: tuple = (0.1, 0.2, 0.3)  # fractions of iters at which the grid grows
+    occupancy_every: int = 50
+    occupancy_after: int = 100  # no pruning before this iteration (empty space must first be learned)
+    occupancy_threshold: float = 2e-2
+    tv_weight: float = 1e-4
+    checkpoint_every_s: float = 30.0
+    checkpoint_every: int = 500  # iterations (whichever comes first)
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["upsample_at"] = list(self.upsample_at)
+        return d
