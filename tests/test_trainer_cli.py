@@ -96,6 +96,7 @@ def test_resume_gives_the_same_field(dataset, tmp_path):
     ca, cb = torch.load(a / "checkpoint.pt", weights_only=False), torch.load(b / "checkpoint.pt", weights_only=False)
     assert ca["iteration"] == cb["iteration"] == 50
     assert torch.equal(ca["state"]["grid"], cb["state"]["grid"])  # bit for bit
+    assert torch.equal(ca["state"]["sh"], cb["state"]["sh"])  # the view-dependent grid too
 
 
 def test_resume_after_sigkill(dataset, tmp_path):
@@ -157,3 +158,16 @@ def test_lower_training_resolution_block_averages(dataset, tmp_path):
     assert (cfg["height"], cfg["width"]) == (16, 16)
     with pytest.raises(Exception, match="must divide"):
         train(_cfg(dataset, iters=3, resolution=20), tmp_path / "bad", progress=False, log=lambda m: None)
+
+
+def test_sh_degree_from_the_command_line_and_resume_guard(dataset, tmp_path):
+    run = tmp_path / "flat"
+    res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(run), "--iters", "3", "--sh-degree", "0",
+                                    "--batch-rays", "256", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 0, res.output
+    ck = torch.load(run / "checkpoint.pt", weights_only=False)
+    assert ck["field"]["sh_degree"] == 0 and "sh" not in ck["state"]
+    # resuming that run with the default (degree 1) would silently keep degree 0: refused instead
+    res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(run), "--iters", "6", "--batch-rays", "256",
+                                    "--device", "cpu", "--quiet"])
+    assert res.exit_code == 2 and "sh_degree=0" in res.output and "Traceback" not in res.output

@@ -44,19 +44,23 @@ def main():
               help="Run folder (default runs/<dataset>_<method>). An existing checkpoint there is resumed.")
 @click.option("--seed", default=TrainConfig.seed, show_default=True, type=int)
 @click.option("--batch-rays", default=TrainConfig.batch_rays, show_default=True, type=click.IntRange(min=1))
+@click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
+              help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
 @click.option("--checkpoint-every", default=TrainConfig.checkpoint_every, show_default=True,
               type=click.IntRange(min=1),
               help=f"Save a checkpoint every N iterations (and at least every {TrainConfig.checkpoint_every_s:g} s).")
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def train(dataset, method, iters, device, resolution, out, seed, batch_rays, checkpoint_every, do_eval, quiet):
+def train(dataset, method, iters, device, resolution, out, seed, batch_rays, sh_degree, checkpoint_every, do_eval,
+          quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
 
     dataset = dataset.resolve()
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
-                      seed=seed, batch_rays=batch_rays, checkpoint_every=checkpoint_every)
+                      seed=seed, batch_rays=batch_rays, sh_degree=sh_degree,
+                      checkpoint_every=checkpoint_every)
     ck = run_train(cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True))
     click.echo(f"checkpoint: {ck}")
     if do_eval:

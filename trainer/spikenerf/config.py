@@ -25,6 +25,8 @@ class TrainConfig:
     occupancy_after: int = 100  # no pruning before this iteration (empty space must first be learned)
     occupancy_threshold: float = 2e-2
     tv_weight: float = 1e-4
+    sh_degree: int = 1  # view-dependent luminance: spherical harmonics up to this degree (0 = none)
+    sh_scale: int = 2  # the SH coefficients' grid is this many times coarser than the main grid
     checkpoint_every_s: float = 30.0
     checkpoint_every: int = 500  # iterations (whichever comes first)
 

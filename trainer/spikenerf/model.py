@@ -1,10 +1,14 @@
-"""The radiance field: a dense voxel grid plus a tiny MLP (the DVGO / TensoRF family).
+"""The radiance field: a dense voxel grid (the DVGO / Plenoxels family), optionally with a tiny MLP.
 
-One grid ``[1, 1 + C, G, G, G]`` holds raw density (channel 0) and C features; a point's
-values are read by trilinear interpolation (``grid_sample``). Luminance (the sensor is
-monochrome) comes from a small MLP of the features and the viewing direction, or, with
-``features=0`` (the default: about 19x faster per iteration on 2 CPU cores), directly from
-one grid channel (view-independent luminance, ``sigmoid`` of channel 1). The grid is
+One grid ``[1, 1 + C, G, G, G]`` holds raw density (channel 0) and luminance (the sensor is
+monochrome); a point's values are read by trilinear interpolation (``grid_sample``).
+Luminance is ``sigmoid`` of channel 1 (the degree-0 term) plus, with ``sh_degree`` 1 or 2
+(the trainer's default is 1), a view-dependent term: real spherical harmonics of the viewing
+direction weighted by coefficients read from a second grid ``sh_scale`` times coarser
+(view-dependent shading varies slowly in space, and the coarse grid both keeps its cost
+small and fits less noise). With ``features > 0`` instead, C feature channels feed a small
+MLP of the features and the viewing direction (about 19x slower per iteration on 2 CPU
+cores). The grid is
 upsampled during training (coarse to fine); an occupancy mask of the grid lets the renderer
 skip empty space. The constructor arguments are stored in checkpoints (:meth:`config`).
 """
@@ -22,6 +26,17 @@ def _shift_for(alpha_init: float, step_ratio: float) -> float:
     return math.log(math.expm1(-math.log1p(-alpha_init) / step_ratio))
 
 
+def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
+    """Real spherical harmonics of degree 1..``degree`` (2 at most), ``[M, (degree + 1)^2 - 1]``, of unit
+    directions ``[M, 3]`` (the constant degree-0 term is left out: the main grid's channel 1 holds it)."""
+    x, y, z = dirs.unbind(-1)
+    out = [-0.48860251 * y, 0.48860251 * z, -0.48860251 * x]
+    if degree >= 2:
+        out += [1.09254843 * x * y, -1.09254843 * y * z, 0.31539157 * (2 * z * z - x * x - y * y),
+                -1.09254843 * x * z, 0.54627421 * (x * x - y * y)]
+    return torch.stack(out, dim=-1)
+
+
 class GridField(nn.Module):
     """Field over the box ``[-bound, bound]^3``.
 
@@ -29,17 +44,34 @@ class GridField(nn.Module):
     """
 
     def __init__(self, grid_size: int = 32, final_size: int = 128, features: int = 0, hidden: int = 48,
-                 bound: float = 1.5, alpha_init: float = 1e-2, step_ratio: float = 0.5):
+                 bound: float = 1.5, alpha_init: float = 1e-2, step_ratio: float = 0.5, sh_degree: int = 0,
+                 sh_scale: int = 2):
         super().__init__()
+        if features and sh_degree:
+            raise ValueError("features (MLP) and sh_degree are alternatives; give one")
+        if sh_degree not in (0, 1, 2):
+            raise ValueError(f"sh_degree must be 0, 1 or 2, got {sh_degree}")
         self.args = dict(grid_size=grid_size, final_size=final_size, features=features, hidden=hidden,
-                         bound=bound, alpha_init=alpha_init, step_ratio=step_ratio)
+                         bound=bound, alpha_init=alpha_init, step_ratio=step_ratio, sh_degree=sh_degree,
+                         sh_scale=sh_scale)
         self.bound, self.final_size, self.step_ratio = bound, final_size, step_ratio
+        self.sh_degree, self.sh_scale = sh_degree, sh_scale
         self.shift = _shift_for(alpha_init, step_ratio)
         self.grid = nn.Parameter(torch.zeros(1, 1 + max(1, features), grid_size, grid_size, grid_size))
+        # View-dependent part: the SH coefficients above degree 0, on a grid sh_scale times coarser.
+        n_sh, S = (sh_degree + 1) ** 2 - 1, self._sh_size(grid_size)
+        self.sh = nn.Parameter(torch.zeros(1, n_sh, S, S, S)) if sh_degree else None
         self.mlp = nn.Sequential(nn.Linear(features + 9, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
                                  nn.Linear(hidden, 1)) if features else nn.Sequential()
         self.register_buffer("occupancy", torch.ones(grid_size, grid_size, grid_size, dtype=torch.bool))
         self.register_buffer("box", torch.tensor([[-bound] * 3, [bound] * 3]))  # occupied box [2, 3], world
+
+    def _sh_size(self, grid_size: int) -> int:
+        return max(8, round(grid_size / self.sh_scale))
+
+    def grids(self) -> list:
+        """The voxel parameters (the grid, and the SH grid if any): one optimiser group."""
+        return [self.grid] + ([self.sh] if self.sh is not None else [])
 
     def config(self) -> dict:
         return dict(self.args, grid_size=self.grid_size)
@@ -61,15 +93,19 @@ class GridField(nn.Module):
         """World points [M, 3] -> grid_sample coordinates in [-1, 1] (x, y, z -> last, middle, first axis)."""
         return (points / self.bound).flip(-1)
 
-    def sample_grid(self, points: torch.Tensor) -> torch.Tensor:
-        """Trilinear values [M, 1 + C] at world points [M, 3]."""
+    def sample_grid(self, points: torch.Tensor, grid: torch.Tensor | None = None) -> torch.Tensor:
+        """Trilinear values [M, channels] of ``grid`` (default: the main grid) at world points [M, 3]."""
+        grid = self.grid if grid is None else grid
         g = self.normalise(points).view(1, -1, 1, 1, 3)
-        out = F.grid_sample(self.grid, g, mode="bilinear", align_corners=True)
-        return out.view(self.grid.shape[1], -1).t()
+        out = F.grid_sample(grid, g, mode="bilinear", align_corners=True)
+        return out.view(grid.shape[1], -1).t()
 
     def query(self, points: torch.Tensor, dirs: torch.Tensor):
         vals = self.sample_grid(points)
         sigma = F.softplus(vals[:, 0] + self.shift)
+        if self.sh is not None:  # channel 1 is the degree-0 term (a logit); the SH grid adds the rest
+            view = (self.sample_grid(points, self.sh) * sh_basis(dirs, self.sh_degree)).sum(-1)
+            return sigma, torch.sigmoid(vals[:, 1] + view)
         if not len(self.mlp):
             return sigma, torch.sigmoid(vals[:, 1])
         pe = torch.cat([dirs, torch.sin(2 * dirs), torch.cos(2 * dirs)], dim=-1)
@@ -109,14 +145,23 @@ class GridField(nn.Module):
         """Resample the grid to ``size^3`` (trilinear); occupancy follows by nearest."""
         new = F.interpolate(self.grid.data, size=(size, size, size), mode="trilinear", align_corners=True)
         self.grid = nn.Parameter(new)
+        if self.sh is not None:
+            S = self._sh_size(size)
+            self.sh = nn.Parameter(F.interpolate(self.sh.data, size=(S, S, S), mode="trilinear", align_corners=True))
         occ = F.interpolate(self.occupancy[None, None].float(), size=(size,) * 3, mode="nearest")[0, 0]
         self.occupancy = occ > 0
         self._update_box()
 
     def tv_loss(self, generator: torch.Generator | None = None, block: int = 24) -> torch.Tensor:
-        """Total variation (squared differences) on a random ``block^3`` sub-grid: a smoothness prior."""
-        G = self.grid_size
-        b = min(block, G)
-        starts = torch.randint(0, G - b + 1, (3,), generator=generator).tolist()
-        sub = self.grid[:, :, starts[0]:starts[0] + b, starts[1]:starts[1] + b, starts[2]:starts[2] + b]
-        return (sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean())
+        """Total variation (squared differences) on a random ``block^3`` sub-grid: a smoothness prior.
+
+        The SH grid (if any) gets the same prior on its own random block."""
+        return sum(_tv(g, block, generator) for g in self.grids())
+
+
+def _tv(grid: torch.Tensor, block: int, generator) -> torch.Tensor:
+    G = grid.shape[-1]
+    b = min(block, G)
+    starts = torch.randint(0, G - b + 1, (3,), generator=generator).tolist()
+    sub = grid[:, :, starts[0]:starts[0] + b, starts[1]:starts[1] + b, starts[2]:starts[2] + b]
+    return sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean()

@@ -55,11 +55,12 @@ def grid_schedule(cfg: TrainConfig, width: int) -> list[tuple[int, int]]:
 
 
 def make_field(cfg: TrainConfig, width: int) -> GridField:
-    return GridField(grid_size=cfg.grid_start, final_size=final_grid(cfg, width))
+    return GridField(grid_size=cfg.grid_start, final_size=final_grid(cfg, width), sh_degree=cfg.sh_degree,
+                     sh_scale=cfg.sh_scale)
 
 
 def make_optimizer(field: GridField, cfg: TrainConfig) -> torch.optim.Optimizer:
-    return torch.optim.Adam([{"params": [field.grid], "lr": cfg.lr_grid},
+    return torch.optim.Adam([{"params": field.grids(), "lr": cfg.lr_grid},
                              {"params": field.mlp.parameters(), "lr": cfg.lr_mlp}], betas=(0.9, 0.99), fused=True)
 
 
@@ -133,9 +134,10 @@ def field_from_checkpoint(ck: dict, device) -> GridField:
 
 
 def _check_resume(ck: dict, cfg: TrainConfig, path: Path) -> None:
-    old = dict(ck["config"])
+    old = {"sh_degree": 0, "sh_scale": 2, **ck["config"]}  # checkpoints from before SH was added have none
     new = cfg.to_json()
-    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final"):
+    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
+                "sh_scale"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
@@ -256,6 +258,7 @@ def _grow(field, opt, cfg, schedule, it):
                 field.update_occupancy(cfg.occupancy_threshold)
             old = opt.state_dict()
             opt = make_optimizer(field, cfg)
-            mlp_state = {k: v for k, v in old["state"].items() if k != 0}
+            n_grids = len(field.grids())  # parameter ids 0..n_grids-1 are the grids: their state restarts
+            mlp_state = {k: v for k, v in old["state"].items() if k >= n_grids}
             opt.load_state_dict({"state": mlp_state, "param_groups": old["param_groups"]})
     return field, opt
