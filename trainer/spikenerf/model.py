@@ -93,18 +93,16 @@ class GridField(nn.Module):
         """World points [M, 3] -> grid_sample coordinates in [-1, 1] (x, y, z -> last, middle, first axis)."""
         return (points / self.bound).flip(-1)
 
-    def sample_grid(self, points: torch.Tensor, grid: torch.Tensor | None = None) -> torch.Tensor:
-        """Trilinear values [M, channels] of ``grid`` (default: the main grid) at world points [M, 3]."""
-        grid = self.grid if grid is None else grid
-        g = self.normalise(points).view(1, -1, 1, 1, 3)
-        out = F.grid_sample(grid, g, mode="bilinear", align_corners=True)
-        return out.view(grid.shape[1], -1).t()
+    def sample_grid(self, points: torch.Tensor) -> torch.Tensor:
+        """Trilinear values [M, 1 + C] of the main grid at world points [M, 3]."""
+        return _trilinear(self.grid, self.normalise(points))
 
     def query(self, points: torch.Tensor, dirs: torch.Tensor):
-        vals = self.sample_grid(points)
+        g = self.normalise(points)  # one normalisation for both grids
+        vals = _trilinear(self.grid, g)
         sigma = F.softplus(vals[:, 0] + self.shift)
         if self.sh is not None:  # channel 1 is the degree-0 term (a logit); the SH grid adds the rest
-            view = (self.sample_grid(points, self.sh) * sh_basis(dirs, self.sh_degree)).sum(-1)
+            view = (_trilinear(self.sh, g) * sh_basis(dirs, self.sh_degree)).sum(-1)
             return sigma, torch.sigmoid(vals[:, 1] + view)
         if not len(self.mlp):
             return sigma, torch.sigmoid(vals[:, 1])
@@ -157,6 +155,12 @@ class GridField(nn.Module):
 
         The SH grid (if any) gets the same prior on its own random block."""
         return sum(_tv(g, block, generator) for g in self.grids())
+
+
+def _trilinear(grid: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+    """Values [M, channels] of ``grid [1, channels, D, H, W]`` at grid_sample coordinates [M, 3]."""
+    out = F.grid_sample(grid, coords.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True)
+    return out.view(grid.shape[1], -1).t()
 
 
 def _tv(grid: torch.Tensor, block: int, generator) -> torch.Tensor:

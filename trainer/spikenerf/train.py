@@ -134,7 +134,8 @@ def field_from_checkpoint(ck: dict, device) -> GridField:
 
 
 def _check_resume(ck: dict, cfg: TrainConfig, path: Path) -> None:
-    old = {"sh_degree": 0, "sh_scale": 2, **ck["config"]}  # checkpoints from before SH was added have none
+    # checkpoints from before SH was added have no SH keys: they are degree 0 (the scale is then moot)
+    old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
                 "sh_scale"):
