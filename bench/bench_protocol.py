@@ -54,15 +54,23 @@ def train_eval(folder: Path, run: Path, method: str, args) -> dict:
         t0 = time.perf_counter()
         _run(cmd)
         wall = time.perf_counter() - t0
+        t0 = time.perf_counter()
         _run(["spikenerf", "eval", str(run), "--device", args.device, "--quiet"])
         m = json.loads((run / "metrics.json").read_text())
         m["wall_seconds_train_command"] = round(wall, 1)
+        m["wall_seconds_eval_command"] = round(time.perf_counter() - t0, 1)
         (run / "metrics.json").write_text(json.dumps(m, indent=1))
     return json.loads((run / "metrics.json").read_text())
 
 
 def _cell(m) -> str:
     return "–" if m is None else f"{m['psnr']:.2f}/{m['psnr_object']:.2f}"
+
+
+def _run_minutes(m) -> str:
+    if "wall_seconds_eval_command" not in m:  # a run from before the eval command was timed
+        return "?"
+    return f"{(m['wall_seconds_train_command'] + m['wall_seconds_eval_command']) / 60:.1f} min"
 
 
 def print_tables(results: dict, intensities, sensors, methods, resolution) -> None:
@@ -75,14 +83,16 @@ def print_tables(results: dict, intensities, sensors, methods, resolution) -> No
         for meth in methods:
             print(f"| ours {s}: {meth} | " + " | ".join(_cell(results.get(f"{s}/{i}/{meth}")) for i in intensities)
                   + " |")
-    print(f"\n| train seconds (SSIM full/object) | " + " | ".join(f"i{i}" for i in intensities) + " |")
+    print(f"\n| train s; whole run (train + eval commands) min; SSIM full/object | "
+          + " | ".join(f"i{i}" for i in intensities) + " |")
     print("|---|" + "---|" * len(intensities))
     for s in sensors:
         for meth in methods:
             cells = []
             for i in intensities:
                 m = results.get(f"{s}/{i}/{meth}")
-                cells.append("–" if m is None else f"{m['train_seconds']:.0f} s ({m['ssim']:.3f}/{m['ssim_object']:.3f})")
+                cells.append("–" if m is None else f"{m['train_seconds']:.0f} s; {_run_minutes(m)}; "
+                             f"{m['ssim']:.3f}/{m['ssim_object']:.3f}")
             print(f"| {s}: {meth} | " + " | ".join(cells) + " |")
 
 
@@ -109,7 +119,8 @@ def main() -> None:
                 run = args.out / f"runs_{args.resolution}" / f"{s}_i{i}_{meth}"
                 results[f"{s}/{i}/{meth}"] = train_eval(folder, run, meth, args)
                 m = results[f"{s}/{i}/{meth}"]
-                print(f"  {s} i{i} {meth}: PSNR {_cell(m)}, train {m['train_seconds']:.0f} s", flush=True)
+                print(f"  {s} i{i} {meth}: PSNR {_cell(m)}, train {m['train_seconds']:.0f} s, "
+                      f"whole run {_run_minutes(m)}", flush=True)
     (args.out / f"results_{args.resolution}.json").write_text(json.dumps(results, indent=1))
     print_tables(results, intensities, sensors, methods, args.resolution)
 

@@ -140,3 +140,52 @@ def test_window_poses_follow_the_subframe_poses():
     assert np.allclose(mid[:3, :3] @ mid[:3, :3].T, np.eye(3), atol=1e-9)
     assert np.allclose(mid[:3, :3], rot_z(0.005)[:3, :3], atol=1e-5)
     assert window_bounds(256, 8) == [(32 * w, 32 * w + 32) for w in range(8)]
+
+
+def test_split_trilinear_matches_one_batch_in_values_and_gradients():
+    """The CPU path samples many points as two batches of an expanded grid: same values, same gradient."""
+    import torch.nn.functional as F
+
+    from spikenerf.model import _trilinear
+    gen = torch.Generator().manual_seed(3)
+    grid = torch.randn(1, 3, 12, 12, 12, generator=gen, requires_grad=True)
+    coords = torch.rand(4097, 3, generator=gen) * 2 - 1  # odd count: the second batch is padded
+    assert coords.shape[0] * 64 >= grid.numel()  # enough points for the split path
+    up = torch.randn(4097, 3, generator=gen)
+    ref = F.grid_sample(grid, coords.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True).view(3, -1).t()
+    (ref * up).sum().backward()
+    ref_grad, grid.grad = grid.grad.clone(), None
+    got = _trilinear(grid, coords)
+    (got * up).sum().backward()
+    assert got.shape == (4097, 3)
+    assert torch.allclose(got, ref, atol=1e-6)
+    assert torch.allclose(grid.grad, ref_grad, atol=1e-5)
+
+
+@pytest.mark.parametrize("spread", [True, False])
+def test_packed_samples_equal_a_ray_by_ray_march(spread):
+    """Both ways of making candidates (broadcast for a field that fills its box, gather otherwise)
+    give exactly the samples of a plain per-ray march through the occupied cells."""
+    from spikenerf.render import _occupied_samples
+    f = _cube_field(0.5)
+    if not spread:
+        f.update_occupancy(1e-3)  # a tight box: most candidates lie outside it
+    gen = torch.Generator().manual_seed(1)
+    pose = _look_from_z()
+    o, d = pixel_rays(pose[None].expand(64, 4, 4), torch.randint(0, 400, (64,), generator=gen), 20, 20, 25.0)
+    jitter = torch.rand(64, generator=gen)
+    step = f.step_ratio * f.voxel
+    idx, ray_of, pts = _occupied_samples(f, o, d, step, jitter)
+    t_in, t_out = box_interval(o, d, f.box)
+    expect_rays, expect_pts = [], []
+    for r in range(64):
+        t = float(t_in[r]) + step * (float(jitter[r]))
+        while t < float(t_out[r]):
+            p = o[r] + t * d[r]
+            if bool(f.occupied(p[None])[0]):
+                expect_rays.append(r)
+                expect_pts.append(p)
+            t += step
+    assert len(expect_rays) > 0
+    assert ray_of.tolist() == expect_rays
+    assert torch.allclose(pts, torch.stack(expect_pts), atol=1e-5)

@@ -114,8 +114,10 @@ class GridField(nn.Module):
         """bool [M]: the nearest grid point of each world point is marked occupied."""
         G = self.occupancy.shape[0]
         half = 0.5 * (G - 1)
-        idx = (points * (half / self.bound) + half).round_().clamp_(0, G - 1).long()
-        flat = (idx[:, 0] * G + idx[:, 1]) * G + idx[:, 2]
+        cell = (points * (half / self.bound)).add_(half).round_().clamp_(0, G - 1)
+        if G > 256:  # the flat index below is exact in float32 only up to G^3 = 2^24
+            cell = cell.double()
+        flat = (cell @ cell.new_tensor([G * G, G, 1.0])).long()  # one dot product
         return self.occupancy.reshape(-1)[flat]
 
     @torch.no_grad()
@@ -157,10 +159,28 @@ class GridField(nn.Module):
         return sum(_tv(g, block, generator) for g in self.grids())
 
 
+CPU_SPLIT = 2  # points are sampled as this many batches on the CPU (a fixed number: bit-reproducible)
+
+
 def _trilinear(grid: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
-    """Values [M, channels] of ``grid [1, channels, D, H, W]`` at grid_sample coordinates [M, 3]."""
-    out = F.grid_sample(grid, coords.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True)
-    return out.view(grid.shape[1], -1).t()
+    """Values [M, channels] of ``grid [1, channels, D, H, W]`` at grid_sample coordinates [M, 3].
+
+    PyTorch's CPU kernels for 3-D grid_sample run in parallel only over the batch, so on the CPU
+    many points go in as ``CPU_SPLIT`` batches against the same (expanded) grid: forward and
+    backward then use two cores. The backward then fills one dense gradient per batch, which
+    costs more than it saves unless there are enough points per grid value (the rule below is
+    the measured break-even on 2 cores: ``python bench/bench_trainer_step.py``).
+    """
+    C, M = grid.shape[1], coords.shape[0]
+    k = CPU_SPLIT if grid.device.type == "cpu" and M * 64 >= grid.numel() else 1
+    if k == 1:
+        out = F.grid_sample(grid, coords.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True)
+        return out.view(C, -1).t()
+    m = -(-M // k)
+    pad = coords.new_zeros(m * k - M, 3)
+    out = F.grid_sample(grid.expand(k, -1, -1, -1, -1), torch.cat([coords, pad]).view(k, m, 1, 1, 3),
+                        mode="bilinear", align_corners=True)  # [k, C, m, 1, 1]
+    return out.view(k, C, m).transpose(1, 2).reshape(k * m, C)[:M]
 
 
 def _tv(grid: torch.Tensor, block: int, generator) -> torch.Tensor:

@@ -67,7 +67,16 @@ def _occupied_samples(field, origins, dirs, step, jitter):
     off = torch.full((n,), 0.5, device=origins.device) if jitter is None else jitter
     k = torch.arange(n_samp, device=origins.device, dtype=origins.dtype)
     t = t_in[:, None] + step * (k[None, :] + off[:, None])  # [n, S]
-    idx = (t < t_out[:, None]).view(-1).nonzero().squeeze(-1)
+    inside = (t < t_out[:, None]).view(-1)
+    if 2 * float(span.sum()) > step * inside.numel():  # (span / step: about the candidates inside)
+        # most candidates are inside the box (a field spread through it): computing every
+        # candidate's point by broadcasting and testing them all is cheaper than gathering the
+        # rays of those inside (a candidate past its ray's exit reads a clamped, real cell and
+        # is then dropped by ``inside``)
+        pts = (origins[:, None, :] + t[..., None] * dirs[:, None, :]).view(-1, 3)
+        idx = (inside & field.occupied(pts)).nonzero().squeeze(-1)
+        return idx, torch.div(idx, n_samp, rounding_mode="floor"), pts[idx]
+    idx = inside.nonzero().squeeze(-1)
     ray_of = torch.div(idx, n_samp, rounding_mode="floor")
     pts = origins[ray_of] + t.view(-1)[idx, None] * dirs[ray_of]
     occ = field.occupied(pts)
