@@ -237,3 +237,12 @@ def test_ctrl_c_stops_between_images_and_the_rerun_completes(tmp_path):
     assert cli_main([*args, "--out", str(out)]) in (0, None)
     assert cli_main([*args, "--out", str(tmp_path / "b")]) in (0, None)
     assert _tree(out) == _tree(tmp_path / "b")
+
+
+def test_the_png_is_recorded_with_the_samples_it_is_rendered_with():
+    """--png-samples is a floor under --samples: the record says what was used, so the command
+    line and the add-on (which pass their settings differently) write the same header."""
+    assert RenderJob("lego", samples=8, png_samples=16).header()["png_samples"] == 16
+    assert RenderJob("lego", samples=32, png_samples=16).header()["png_samples"] == 32
+    assert RenderJob("lego", samples=32, png_samples=16).header() == RenderJob("lego", samples=32,
+                                                                               png_samples=32).header()

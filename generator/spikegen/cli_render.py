@@ -32,7 +32,7 @@ from .scenes import SCENES
 @click.option("--samples", type=int, default=RenderJob.samples, show_default=True,
               help="Cycles samples per sub-frame (the same noise pattern in every sub-frame of a view).")
 @click.option("--png-samples", type=int, default=RenderJob.png_samples, show_default=True,
-              help="Cycles samples of the ground-truth PNG.")
+              help="Cycles samples of the ground-truth PNG (at least --samples).")
 @click.option("--denoise/--no-denoise", default=RenderJob.denoise, show_default=True,
               help="OpenImageDenoise on every image (a deterministic function of the image).")
 @click.option("--engine", type=click.Choice(["cycles", "workbench"]), default="cycles", show_default=True,

@@ -57,6 +57,7 @@ class RenderJob:
         """render.json without its views."""
         d = asdict(self)
         d["views"] = dict(zip(SPLITS, (int(v) for v in self.views)))
+        d["png_samples"] = max(self.png_samples, self.samples)  # what the PNG is rendered with
         return {"format": RENDER_FORMAT, **{k: d[k] for k in HEADER_KEYS if k in d}}
 
     def rig(self) -> dict[str, list[View]]:
