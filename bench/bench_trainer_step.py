@@ -3,7 +3,7 @@
 Prints, for synthetic but realistic inputs (points along rays, as the renderer makes them):
 
 1. ``trilinear``: forward + backward of sampling a voxel grid at M points, as one batch
-   (``CPU_SPLIT = 1``) and as two batches of the expanded grid (the default on the CPU), for
+   and as two batches of the expanded grid (the default on the CPU), for
    the main grid (128^3 x 2 channels) and the degree-1 SH grid (64^3 x 3). The trainer splits
    when ``M * 64 >= grid values``; the table shows the break-even that rule stands for.
 2. ``candidates``: making the packed samples of 2048 rays (``render._occupied_samples``) for a
@@ -22,6 +22,7 @@ import time
 
 import torch
 
+from spikegen.camera import focal_px
 from spikenerf import model as M
 from spikenerf import render as R
 
@@ -47,40 +48,19 @@ def trilinear_table(reps: int) -> None:
     gen = torch.Generator().manual_seed(0)
     print(f"trilinear forward + backward, median of {reps} (ms); torch threads: {torch.get_num_threads()}")
     print(f"{'grid':>12} {'points':>8} {'1 batch':>8} {'2 batches':>9} {'trainer uses':>13}")
-    saved = M.CPU_SPLIT
-    try:
-        for G, C in ((128, 2), (64, 3)):
-            grid = torch.randn(1, C, G, G, G, generator=gen, requires_grad=True)
-            for m in (20_000, 45_000, 90_000, 180_000):
-                pts = _ray_points(m, gen)
-                up = torch.randn(pts.shape[0], C, generator=gen)
+    for G, C in ((128, 2), (64, 3)):
+        grid = torch.randn(1, C, G, G, G, generator=gen, requires_grad=True)
+        for m in (20_000, 45_000, 90_000, 180_000):
+            pts = _ray_points(m, gen)
+            up = torch.randn(pts.shape[0], C, generator=gen)
 
-                def step():
-                    (M._trilinear(grid, pts) * up).sum().backward()
-                    grid.grad = None
+            def step(k):
+                (M._trilinear(grid, pts, split=k) * up).sum().backward()
+                grid.grad = None
 
-                res = []
-                for k in (1, 2):
-                    M.CPU_SPLIT = k
-                    res.append(_median_ms(step, reps))
-                uses = "2 batches" if pts.shape[0] * 64 >= grid.numel() else "1 batch"
-                print(f"{G:>4}^3 x {C:<3} {pts.shape[0]:>8} {res[0]:>8.1f} {res[1]:>9.1f} {uses:>13}")
-    finally:
-        M.CPU_SPLIT = saved
-
-
-@torch.no_grad()
-def _gather_samples(field, origins, dirs, step, jitter):
-    """The candidate step without the broadcast branch (what the trainer did before)."""
-    t_in, t_out = R.box_interval(origins, dirs, field.box)
-    n_samp = max(1, int(torch.ceil((t_out - t_in).clamp(min=0).max() / step).item()))
-    k = torch.arange(n_samp, dtype=origins.dtype)
-    t = t_in[:, None] + step * (k[None, :] + jitter[:, None])
-    idx = (t < t_out[:, None]).view(-1).nonzero().squeeze(-1)
-    ray_of = torch.div(idx, n_samp, rounding_mode="floor")
-    pts = origins[ray_of] + t.view(-1)[idx, None] * dirs[ray_of]
-    occ = field.occupied(pts)
-    return idx[occ], ray_of[occ], pts[occ]
+            res = [_median_ms(lambda: step(k), reps) for k in (1, 2)]
+            uses = f"{M.split_count(grid, pts.shape[0])} batch(es)"
+            print(f"{G:>4}^3 x {C:<3} {pts.shape[0]:>8} {res[0]:>8.1f} {res[1]:>9.1f} {uses:>13}")
 
 
 def candidates_table(reps: int) -> None:
@@ -89,7 +69,7 @@ def candidates_table(reps: int) -> None:
     with torch.no_grad():
         field.grid[0, 0] = torch.randn(128, 128, 128, generator=gen)
     # camera 4 units from the origin, 100 x 100 pixels, NeRF-synthetic's field of view
-    focal = 0.5 * 100 / torch.tan(torch.tensor(0.5 * 0.6911)).item()
+    focal = focal_px(100)
     pose = torch.eye(4)
     pose[2, 3] = 4.0
     pix = torch.randint(0, 100 * 100, (2048,), generator=gen)
@@ -107,7 +87,7 @@ def candidates_table(reps: int) -> None:
             field._update_box()
         step = field.step_ratio * field.voxel
         n = R._occupied_samples(field, o, d, step, jitter)[0].numel()
-        t_gather = _median_ms(lambda: _gather_samples(field, o, d, step, jitter), reps)
+        t_gather = _median_ms(lambda: R._occupied_samples(field, o, d, step, jitter, broadcast=False), reps)
         t_now = _median_ms(lambda: R._occupied_samples(field, o, d, step, jitter), reps)
         print(f"{name:>28} {n / 2048:>11.1f} {t_gather:>7.1f} {t_now:>8.1f}")
 

@@ -100,7 +100,7 @@ class ExportSession:
         res = props.resolution
         job = RenderJob(name, res, res, (props.views_train, props.views_val, props.views_test), props.subframes,
                         props.frames, props.motion_deg, "cycles", props.samples,
-                        RenderJob.png_samples,  # the renderer uses max(this, samples), as for the CLI
+                        RenderJob.png_samples,  # as the CLI: the job raises it to `samples` if need be
                         props.seed, camera_angle_x(camera, res, res), source, props.denoise)
         check_job(job)
         self.folder = RenderFolder.open(self.out, job)

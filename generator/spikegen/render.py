@@ -53,11 +53,16 @@ class RenderJob:
     source: str = "builtin"  # "builtin", or "blend:<sha256>"
     denoise: bool = False  # OpenImageDenoise on each image (docs/rendering.md)
 
+    @property
+    def png_render_samples(self) -> int:
+        """Samples of the ground-truth PNG: ``png_samples``, never fewer than the sub-frames'."""
+        return max(self.png_samples, self.samples)
+
     def header(self) -> dict:
         """render.json without its views."""
         d = asdict(self)
         d["views"] = dict(zip(SPLITS, (int(v) for v in self.views)))
-        d["png_samples"] = max(self.png_samples, self.samples)  # what the PNG is rendered with
+        d["png_samples"] = self.png_render_samples
         return {"format": RENDER_FORMAT, **{k: d[k] for k in HEADER_KEYS if k in d}}
 
     def rig(self) -> dict[str, list[View]]:

@@ -57,7 +57,7 @@ class RenderSettings:
     def for_job(cls, job, **overrides) -> "RenderSettings":
         """The settings a :class:`~spikegen.render.RenderJob` asks for (``overrides`` replace fields)."""
         return cls(**{"width": job.width, "height": job.height, "engine": job.engine, "samples": job.samples,
-                      "png_samples": job.png_samples, "denoise": job.denoise, **overrides})
+                      "png_samples": job.png_render_samples, "denoise": job.denoise, **overrides})
 
     def thread_count(self) -> int:
         return self.threads or (os.cpu_count() or 1)
@@ -362,7 +362,7 @@ class BlenderRenderer:
         self.set_pose(pose)
         fmt = self.scene.render.image_settings
         fmt.file_format, fmt.color_mode, fmt.color_depth, fmt.compression = "PNG", "RGBA", "8", 15
-        self._render_to(path, max(self.settings.png_samples, self.settings.samples), _rewrite_png)
+        self._render_to(path, self.settings.png_samples, _rewrite_png)
 
     def _render_to(self, path, samples: int, rewrite) -> None:
         bpy = _bpy()

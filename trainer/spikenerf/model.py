@@ -162,25 +162,29 @@ class GridField(nn.Module):
 CPU_SPLIT = 2  # points are sampled as this many batches on the CPU (a fixed number: bit-reproducible)
 
 
-def _trilinear(grid: torch.Tensor, coords: torch.Tensor) -> torch.Tensor:
+def _trilinear(grid: torch.Tensor, coords: torch.Tensor, split: int | None = None) -> torch.Tensor:
     """Values [M, channels] of ``grid [1, channels, D, H, W]`` at grid_sample coordinates [M, 3].
 
     PyTorch's CPU kernels for 3-D grid_sample run in parallel only over the batch, so on the CPU
     many points go in as ``CPU_SPLIT`` batches against the same (expanded) grid: forward and
     backward then use two cores. The backward then fills one dense gradient per batch, which
     costs more than it saves unless there are enough points per grid value (the rule below is
-    the measured break-even on 2 cores: ``python bench/bench_trainer_step.py``).
+    the measured break-even on 2 cores: ``python bench/bench_trainer_step.py``). ``split``
+    forces the number of batches (None: :func:`split_count`).
     """
     C, M = grid.shape[1], coords.shape[0]
-    k = CPU_SPLIT if grid.device.type == "cpu" and M * 64 >= grid.numel() else 1
-    if k == 1:
-        out = F.grid_sample(grid, coords.view(1, -1, 1, 1, 3), mode="bilinear", align_corners=True)
-        return out.view(C, -1).t()
+    k = split or split_count(grid, M)
     m = -(-M // k)
-    pad = coords.new_zeros(m * k - M, 3)
-    out = F.grid_sample(grid.expand(k, -1, -1, -1, -1), torch.cat([coords, pad]).view(k, m, 1, 1, 3),
-                        mode="bilinear", align_corners=True)  # [k, C, m, 1, 1]
+    if m * k > M:  # pad the last batch
+        coords = torch.cat([coords, coords.new_zeros(m * k - M, 3)])
+    out = F.grid_sample(grid.expand(k, -1, -1, -1, -1), coords.view(k, m, 1, 1, 3), mode="bilinear",
+                        align_corners=True)  # [k, C, m, 1, 1]
     return out.view(k, C, m).transpose(1, 2).reshape(k * m, C)[:M]
+
+
+def split_count(grid: torch.Tensor, points: int) -> int:
+    """How many batches :func:`_trilinear` samples ``points`` points of ``grid`` as."""
+    return CPU_SPLIT if grid.device.type == "cpu" and points * 64 >= grid.numel() else 1
 
 
 def _tv(grid: torch.Tensor, block: int, generator) -> torch.Tensor:

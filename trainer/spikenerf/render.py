@@ -58,8 +58,11 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.
 
 
 @torch.no_grad()
-def _occupied_samples(field, origins, dirs, step, jitter):
-    """Packed samples: (flat index [m], ray [m], point [m, 3]), sorted by ray then depth."""
+def _occupied_samples(field, origins, dirs, step, jitter, broadcast: bool | None = None):
+    """Packed samples: (flat index [m], ray [m], point [m, 3]), sorted by ray then depth.
+
+    ``broadcast``: how candidate points are made (see below); None = chosen by the box's fill.
+    """
     n = origins.shape[0]
     t_in, t_out = box_interval(origins, dirs, field.box)
     span = (t_out - t_in).clamp(min=0)
@@ -68,7 +71,9 @@ def _occupied_samples(field, origins, dirs, step, jitter):
     k = torch.arange(n_samp, device=origins.device, dtype=origins.dtype)
     t = t_in[:, None] + step * (k[None, :] + off[:, None])  # [n, S]
     inside = (t < t_out[:, None]).view(-1)
-    if 2 * float(span.sum()) > step * inside.numel():  # (span / step: about the candidates inside)
+    if broadcast is None:  # (span / step: about the candidates inside)
+        broadcast = 2 * float(span.sum()) > step * inside.numel()
+    if broadcast:
         # most candidates are inside the box (a field spread through it): computing every
         # candidate's point by broadcasting and testing them all is cheaper than gathering the
         # rays of those inside (a candidate past its ray's exit reads a clamped, real cell and
