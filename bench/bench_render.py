@@ -1,12 +1,15 @@
 """Rendering speed and the choice of the default Cycles samples (docs/rendering.md).
 
     python bench/bench_render.py speed  [--scenes lego,mic] [--views 2] [--resolution 400] [--samples N] [--denoise 0/1]
+                                        [--crop 1/0]
     python bench/bench_render.py noise  [--scenes ...] [--samples 1,2,4,8,16] [--reference 512]
                                         [--subframes 16] [--motion 1.0] [--resolution 200] [--denoise 1,2,4]
 
 speed: seconds per view (K = 16 sub-frames as EXR + the ground-truth PNG) at the default
 settings, per scene, after the scene is built (build time printed apart); wall-clock and CPU
-seconds (all threads) per view, and the load average, since a shared machine slows the wall clock.
+seconds (all threads) per view, and the load average, since a shared machine slows the wall clock;
+"box area" is the mean fraction of the frame Cycles renders (the box around the object's image;
+--crop 0 renders every pixel, for comparison: the files are the same bytes either way).
 The first view of a scene includes Cycles' one-time set-up (BVH, kernels), so use --views >= 2.
 
 noise: for one view per scene, the RMS error in radiance X (luminance on white) of the time
@@ -33,7 +36,7 @@ from spikegen import camera as cm
 from spikegen.presets import get_sensor
 from spikegen.recon import rate_to_radiance, tfp
 from spikegen.render import RenderJob, view_render_seed
-from spikegen.render_blender import BlenderRenderer, RenderSettings, build_bpy_scene
+from spikegen.render_blender import BlenderRenderer, RenderSettings, build_bpy_scene, builtin_renderer
 from spikegen.scenes import SCENES, build_scene
 from spikegen.sensor import simulate
 from spikegen.spikeio import exr_to_radiance, read_exr
@@ -48,32 +51,38 @@ def radiance(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return np.clip(exr_to_radiance(rgba) + (1.0 - rgba[:, :, 3]), 0.0, X_MAX), rgba[:, :, 3]
 
 
-def speed(scenes, views: int, resolution: int, samples: int | None = None, denoise: bool | None = None) -> None:
+def speed(scenes, views: int, resolution: int, samples: int | None = None, denoise: bool | None = None,
+          crop: bool = True) -> None:
     given = {"samples": samples, "denoise": denoise}
     job = RenderJob("x", **{k: v for k, v in given.items() if v is not None})
     print(f"# seconds per view: {job.subframes} sub-frames (EXR) + 1 PNG at {resolution} x {resolution}, "
-          f"samples {job.samples} (PNG {job.png_samples}), denoise {job.denoise}, {views} views per scene")
+          f"samples {job.samples} (PNG {job.png_samples}), denoise {job.denoise}, {views} views per scene, "
+          f"{'the box around the object' if crop else 'every pixel'} rendered")
     print(f"# load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
-    print(f"{'scene':<10} {'build s':>8} {'s/view':>8} {'cpu s/view':>11} {'s/image':>8}")
+    print(f"{'scene':<10} {'build s':>8} {'s/view':>8} {'cpu s/view':>11} {'s/image':>8} {'box area':>9}")
     rig = cm.make_views("train", views, job.subframes, job.motion_deg)
     all_times = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in scenes:
             t0 = time.perf_counter()
-            scene, camera = build_bpy_scene(build_scene(name))
-            r = BlenderRenderer(scene, camera, RenderSettings.for_job(job, width=resolution, height=resolution))
+            r = builtin_renderer(name, RenderSettings.for_job(job, width=resolution, height=resolution))
+            if not crop:
+                r.crop_points = None
             build = time.perf_counter() - t0
             t0, c0 = time.perf_counter(), time.process_time()
+            areas = []
             for v in rig:
                 r.set_view_seed(view_render_seed(0, v.split, v.index))
                 for k, pose in enumerate(v.subframe_poses):
                     r.render_exr(pose, Path(tmp) / f"{name}_{v.index}_{k}.exr")
+                    box = r.crop_box(pose) or (0, resolution, 0, resolution)
+                    areas.append((box[1] - box[0]) * (box[3] - box[2]) / resolution ** 2)
                 r.render_png(v.pose, Path(tmp) / f"{name}_{v.index}.png")
             per_view = (time.perf_counter() - t0) / views
             cpu = (time.process_time() - c0) / views
             all_times.append((per_view, cpu))
-            print(f"{name:<10} {build:8.2f} {per_view:8.2f} {cpu:11.2f} {per_view / (job.subframes + 1):8.3f}",
-                  flush=True)
+            print(f"{name:<10} {build:8.2f} {per_view:8.2f} {cpu:11.2f} {per_view / (job.subframes + 1):8.3f} "
+                  f"{np.mean(areas):9.2f}", flush=True)
     mean = np.mean(all_times, axis=0)
     print(f"{'mean':<10} {'':>8} {mean[0]:8.2f} {mean[1]:11.2f}")
 
@@ -137,6 +146,8 @@ def main() -> None:
     ap.add_argument("--reference", type=int, default=512)
     ap.add_argument("--denoise", default=None, help="noise: samples to also render denoised (list, e.g. 1,2,4); "
                     "speed: 1 or 0 (default: the render default)")
+    ap.add_argument("--crop", type=int, default=1, help="speed: 1 renders the box around the object (the "
+                    "default for built-in scenes), 0 every pixel")
     ap.add_argument("--subframes", type=int, default=16, help="noise: sub-frames averaged (1 = one static frame)")
     ap.add_argument("--motion", type=float, default=cm.DEFAULT_MOTION_DEG, help="noise: camera motion (deg)")
     a = ap.parse_args()
@@ -145,7 +156,7 @@ def main() -> None:
     scenes = [s for s in a.scenes.split(",") if s]
     if a.what == "speed":
         speed(scenes, a.views, a.resolution or 400, int(a.samples) if a.samples_given else None,
-              None if a.denoise is None else bool(int(a.denoise)))
+              None if a.denoise is None else bool(int(a.denoise)), bool(a.crop))
     else:
         noise(scenes, [int(s) for s in a.samples.split(",")], a.reference, a.resolution or 200, a.subframes,
               a.motion, [int(s) for s in a.denoise.split(",")] if a.denoise else [])

@@ -190,3 +190,22 @@ def test_modal_operator_esc_cancels_and_leaves_no_partial_view(addon, tmp_path):
     assert sorted(p.name for p in (folder / "train").iterdir()) == ["r_0.png", "r_0_sub00.exr", "r_0_sub01.exr"]
     assert not any(p.name.endswith(".part") for p in folder.rglob("*"))
     assert not (tmp_path / "scene_i16").exists()
+
+
+def test_a_render_border_in_the_users_scene_does_not_crop_the_dataset(addon, tmp_path):
+    """The export renders every pixel whatever border the user set, and gives the border back."""
+    build_bpy_scene(build_scene("lego"))
+    scene = bpy.context.scene
+    one = dict(SMALL, intensities="16", views_train=1, views_val=0, views_test=0)
+    assert bpy.ops.export_scene.spike_dataset(directory=str(tmp_path / "plain"), **one) == {"FINISHED"}
+    r = scene.render
+    r.use_border, r.use_crop_to_border = True, True
+    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.1, 0.3, 0.2, 0.4
+    assert bpy.ops.export_scene.spike_dataset(directory=str(tmp_path / "border"), **one) == {"FINISHED"}
+    assert (r.use_border, r.use_crop_to_border) == (True, True)
+    border = (r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y)
+    assert [round(v, 6) for v in border] == [0.1, 0.3, 0.2, 0.4]
+    files = sorted(p.relative_to(tmp_path / "plain") for p in (tmp_path / "plain").rglob("*.*") if p.is_file())
+    assert any(p.suffix == ".exr" for p in files)
+    for p in files:
+        assert (tmp_path / "plain" / p).read_bytes() == (tmp_path / "border" / p).read_bytes(), p

@@ -71,3 +71,21 @@ def test_subframe_poses_orbit_symmetrically_about_the_mid_pose():
 def test_zero_motion_is_static():
     pose = cm.make_views("train", 1)[0].pose
     assert np.allclose(cm.subframe_poses(pose, 16, 0.0), pose[None])
+
+
+def test_crop_window_holds_every_projected_point_grown_by_the_margin():
+    rng = np.random.default_rng(3)
+    pts = rng.uniform(-0.6, 0.6, size=(500, 3))
+    pose = cm.make_views("train", 1)[0].pose
+    xy = cm.project(pts, pose, 400, 400)
+    x0, x1, y0, y1 = cm.crop_window(pts, pose, 400, 400, margin=3)
+    assert x0 <= xy[:, 0].min() - 3 and xy[:, 0].max() + 3 < x1  # x1, y1 exclusive pixel ends
+    assert y0 <= xy[:, 1].min() - 3 and xy[:, 1].max() + 3 < y1
+    assert x1 - x0 < xy[:, 0].ptp() + 3 + 2 * 3 and y1 - y0 < xy[:, 1].ptp() + 3 + 2 * 3  # and not much more
+    # clipped to the frame, and None where that is the whole frame or a point is behind the camera
+    assert cm.crop_window(pts * 2.5, pose, 400, 400, margin=3) is None
+    assert cm.crop_window(pts, pose, 400, 400, margin=400) is None
+    behind = np.vstack([pts, 2 * pose[:3, 3]])
+    assert cm.crop_window(behind, pose, 400, 400) is None
+    x0, x1, y0, y1 = cm.crop_window(pts + [0.0, 0.0, 1.9], pose, 400, 400, margin=3)
+    assert y0 == 0 and y1 < 400

@@ -121,6 +121,29 @@ def focal_px(width: int, camera_angle_x: float = CAMERA_ANGLE_X) -> float:
     return 0.5 * width / math.tan(0.5 * camera_angle_x)
 
 
+def crop_window(points: np.ndarray, pose: np.ndarray, width: int, height: int,
+                camera_angle_x: float = CAMERA_ANGLE_X, margin: int = 0) -> tuple[int, int, int, int] | None:
+    """The pixel box ``(x0, x1, y0, y1)`` (x right, y down, ends exclusive) holding the image of
+    ``points [N, 3]`` seen from ``pose``, grown by ``margin`` pixels and clipped to the frame;
+    ``None`` when it is the whole frame or a point is not in front of the camera.
+
+    A triangle's image lies inside the box of its corners' images (a perspective projection keeps
+    straight edges straight for points in front of the camera), so the box of all vertices holds
+    every pixel a mesh can touch; ``margin`` covers the pixel filter's reach."""
+    xy = project(np.asarray(points, dtype=np.float64), pose, width, height, camera_angle_x)
+    if len(xy) == 0 or not np.isfinite(xy).all():
+        return None
+    x0 = max(0, math.floor(xy[:, 0].min()) - margin)
+    y0 = max(0, math.floor(xy[:, 1].min()) - margin)
+    x1 = min(width, math.ceil(xy[:, 0].max()) + 1 + margin)
+    y1 = min(height, math.ceil(xy[:, 1].max()) + 1 + margin)
+    if x0 >= x1 or y0 >= y1:  # entirely outside the frame: one pixel, still rendered
+        x0, x1, y0, y1 = 0, 1, 0, 1
+    if (x0, x1, y0, y1) == (0, width, 0, height):
+        return None
+    return x0, x1, y0, y1
+
+
 def project(points: np.ndarray, pose: np.ndarray, width: int, height: int,
             camera_angle_x: float = CAMERA_ANGLE_X) -> np.ndarray:
     """Pixel coordinates ``[N, 2]`` (x right, y down) of world ``points [N, 3]``; NaN behind the camera."""

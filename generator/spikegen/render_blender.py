@@ -9,7 +9,9 @@ Determinism and speed. Cycles runs on the CPU with a fixed thread count, one til
 seed per view (``use_animated_seed`` off, so all sub-frames of a view share one noise pattern:
 noise that changed between sub-frames would turn into spurious spikes), no denoiser, no
 adaptive sampling, no dithering, and persistent data (the scene is synced once; only the
-camera moves between renders). Colour management is "Standard" so the PNG is plain sRGB.
+camera moves between renders). For the built-in scenes Cycles renders only the box around the
+object's image (the same bytes; see :class:`BlenderRenderer`). Colour management is "Standard" so
+the PNG is plain sRGB.
 """
 from __future__ import annotations
 
@@ -23,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import CAMERA_ANGLE_X
+from .camera import CAMERA_ANGLE_X, crop_window
 from .errors import InputError
 from .spikeio import atomic_path
 
@@ -277,8 +279,9 @@ def _configure_workbench(scene) -> None:
 SAVED = ("render.engine", "render.resolution_x", "render.resolution_y", "render.resolution_percentage",
          "render.film_transparent", "render.use_persistent_data", "render.threads_mode", "render.threads",
          "render.dither_intensity", "render.use_compositing", "render.use_sequencer", "render.use_file_extension",
-         "render.use_motion_blur", "render.filepath", "render.image_settings.file_format",
-         "render.image_settings.color_mode", "render.image_settings.color_depth", "view_settings.view_transform",
+         "render.use_motion_blur", "render.use_border", "render.use_crop_to_border", "render.border_min_x",
+         "render.border_max_x", "render.border_min_y", "render.border_max_y", "render.filepath",
+         "render.image_settings.file_format", "render.image_settings.color_mode", "render.image_settings.color_depth", "view_settings.view_transform",
          "view_settings.look", "view_settings.exposure", "view_settings.gamma", "cycles.samples",
          "cycles.use_adaptive_sampling", "cycles.use_denoising", "cycles.denoiser",
          "cycles.denoising_input_passes", "cycles.denoising_prefilter", "cycles.denoising_quality",
@@ -321,10 +324,18 @@ def _owner(scene, path: str):
 
 
 class BlenderRenderer:
-    """Renders poses of ``camera`` in ``scene`` to files; the scene is configured once."""
+    """Renders poses of ``camera`` in ``scene`` to files; the scene is configured once.
 
-    def __init__(self, scene, camera, settings: RenderSettings, quiet: bool = True):
+    ``crop_points [N, 3]``: world points whose image bounds everything the camera can see (the
+    vertices of a built-in scene; the film is transparent, so every other pixel is (0, 0, 0, 0)).
+    Cycles then renders only the box around their image (grown by the pixel filter's reach) and
+    leaves the rest of the frame transparent: the same bytes as a full-frame render (Cycles draws
+    each pixel's samples from its own coordinates; tests/test_render.py checks every scene) in
+    60-80 % of the time. ``None`` (a user's scene, which may hold anything) renders every pixel."""
+
+    def __init__(self, scene, camera, settings: RenderSettings, quiet: bool = True, crop_points=None):
         self.scene, self.camera, self.settings, self.quiet = scene, camera, settings, quiet
+        self.crop_points = None if crop_points is None else np.asarray(crop_points, dtype=np.float64)
         scene.camera = camera
         configure(scene, settings)
 
@@ -342,6 +353,25 @@ class BlenderRenderer:
 
         self.camera.matrix_world = Matrix(np.asarray(pose, dtype=np.float64).tolist())
         _bpy().context.view_layer.update()
+        self._set_crop(pose)
+
+    def crop_box(self, pose: np.ndarray) -> tuple[int, int, int, int] | None:
+        """The pixel box ``(x0, x1, y0, y1)`` rendered at ``pose`` (``None``: the whole frame)."""
+        if self.crop_points is None or self.settings.engine != "cycles":
+            return None
+        reach = math.ceil(self.scene.cycles.filter_width) + 2  # filter footprint, with room to spare
+        return crop_window(self.crop_points, pose, self.settings.width, self.settings.height,
+                           self.camera_angle_x(), margin=reach)
+
+    def _set_crop(self, pose: np.ndarray) -> None:
+        r, box = self.scene.render, self.crop_box(pose)
+        r.use_border = box is not None
+        if box is not None:  # Blender's border: fractions of the frame, y up
+            x0, x1, y0, y1 = box
+            w, h = self.settings.width, self.settings.height
+            r.use_crop_to_border = False  # the full frame is written, transparent outside the box
+            r.border_min_x, r.border_max_x = x0 / w, x1 / w
+            r.border_min_y, r.border_max_y = (h - y1) / h, (h - y0) / h
 
     def camera_matrix(self) -> np.ndarray:
         """The camera's current camera-to-world ``[4, 4]`` as Blender holds it."""
@@ -440,10 +470,16 @@ def quiet_stdout(enabled: bool = True):
 
 def renderer_for(job, blend=None, quiet: bool = True) -> "BlenderRenderer":
     """A renderer for ``job``: the built-in scene ``job.scene``, or the user's ``blend`` file."""
+    if blend is None:
+        return builtin_renderer(job.scene, RenderSettings.for_job(job), quiet=quiet)
+    scene, camera = open_blend(blend)
+    return BlenderRenderer(scene, camera, RenderSettings.for_job(job), quiet=quiet)
+
+
+def builtin_renderer(name: str, settings: RenderSettings, quiet: bool = True) -> "BlenderRenderer":
+    """A renderer for the built-in scene ``name``, rendering only the box around its image."""
     from .scenes import build_scene
 
-    if blend is not None:
-        scene, camera = open_blend(blend)
-    else:
-        scene, camera = build_bpy_scene(build_scene(job.scene))
-    return BlenderRenderer(scene, camera, RenderSettings.for_job(job), quiet=quiet)
+    desc = build_scene(name)
+    scene, camera = build_bpy_scene(desc)
+    return BlenderRenderer(scene, camera, settings, quiet=quiet, crop_points=desc.vertices())
