@@ -192,20 +192,37 @@ def test_modal_operator_esc_cancels_and_leaves_no_partial_view(addon, tmp_path):
     assert not (tmp_path / "scene_i16").exists()
 
 
-def test_a_render_border_in_the_users_scene_does_not_crop_the_dataset(addon, tmp_path):
-    """The export renders every pixel whatever border the user set, and gives the border back."""
+def test_scene_settings_that_would_change_the_images_do_not(addon, tmp_path):
+    """A render border, film exposure, a view layer's samples, a time limit, depth of field, a
+    curve: the export renders the same bytes as from a plain scene, and gives every setting back."""
     build_bpy_scene(build_scene("lego"))
     scene = bpy.context.scene
     one = dict(SMALL, intensities="16", views_train=1, views_val=0, views_test=0)
     assert bpy.ops.export_scene.spike_dataset(directory=str(tmp_path / "plain"), **one) == {"FINISHED"}
-    r = scene.render
-    r.use_border, r.use_crop_to_border = True, True
-    r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y = 0.1, 0.3, 0.2, 0.4
-    assert bpy.ops.export_scene.spike_dataset(directory=str(tmp_path / "border"), **one) == {"FINISHED"}
-    assert (r.use_border, r.use_crop_to_border) == (True, True)
-    border = (r.border_min_x, r.border_max_x, r.border_min_y, r.border_max_y)
-    assert [round(v, 6) for v in border] == [0.1, 0.3, 0.2, 0.4]
+    r, c, cam = scene.render, scene.cycles, scene.camera.data
+    user = {(r, "use_border"): True, (r, "use_crop_to_border"): True, (r, "border_min_x"): 0.1,
+            (r, "border_max_x"): 0.3, (r, "border_min_y"): 0.2, (r, "border_max_y"): 0.4,
+            (c, "film_exposure"): 3.0, (c, "use_layer_samples"): "USE", (scene.view_layers[0], "samples"): 5,
+            (c, "time_limit"): 0.001, (cam.dof, "use_dof"): True, (cam.dof, "focus_distance"): 0.5,
+            (cam.dof, "aperture_fstop"): 0.1, (scene.view_settings, "use_curve_mapping"): True,
+            (scene.view_settings, "exposure"): 1.5}
+    for (owner, attr), value in user.items():
+        setattr(owner, attr, value)
+    assert bpy.ops.export_scene.spike_dataset(directory=str(tmp_path / "user"), **one) == {"FINISHED"}
+    for (owner, attr), value in user.items():
+        assert getattr(owner, attr) == (pytest.approx(value) if isinstance(value, float) else value), attr
     files = sorted(p.relative_to(tmp_path / "plain") for p in (tmp_path / "plain").rglob("*.*") if p.is_file())
-    assert any(p.suffix == ".exr" for p in files)
+    assert any(p.suffix == ".exr" for p in files) and any(p.suffix == ".png" for p in files)
     for p in files:
-        assert (tmp_path / "plain" / p).read_bytes() == (tmp_path / "border" / p).read_bytes(), p
+        assert (tmp_path / "plain" / p).read_bytes() == (tmp_path / "user" / p).read_bytes(), p
+
+
+@pytest.mark.parametrize("change, message", [({"type": "ORTHO"}, "perspective"),
+                                             ({"shift_x": 0.1}, "lens shift")])
+def test_a_camera_the_dataset_cannot_describe_is_refused(addon, tmp_path, change, message):
+    build_bpy_scene(build_scene("mic"))
+    for attr, value in change.items():
+        setattr(bpy.context.scene.camera.data, attr, value)
+    with pytest.raises(RuntimeError, match=message):
+        bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), **SMALL)
+    assert not any(tmp_path.iterdir())

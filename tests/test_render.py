@@ -172,6 +172,19 @@ def test_blend_file_is_rendered_under_its_name(tmp_path):
     assert (tmp_path / "o" / "myscene_i16" / "manifest.json").is_file()
 
 
+def test_a_blend_whose_camera_the_dataset_cannot_describe_is_refused(tmp_path, capsys):
+    import bpy
+
+    scene, camera = build_bpy_scene(build_scene("hotdog"))
+    camera.data.type = "ORTHO"
+    blend = tmp_path / "flat.blend"
+    bpy.ops.wm.save_as_mainfile(filepath=str(blend))
+    assert cli_main(["render", "--blend", str(blend), "--intensity", "16", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("spikegen: error:") and "perspective" in err[-1]
+    assert not (tmp_path / "o").exists()
+
+
 def test_denoise_is_recorded_reproducible_and_smoother(tmp_path):
     """--denoise: render.json says so, a folder made without it refuses it, two runs give the same
     bytes, and the image is smoother than the raw render of the same samples."""

@@ -196,6 +196,17 @@ def set_camera_angle(camera, angle_x: float) -> None:
     camera.data.shift_x = camera.data.shift_y = 0.0
 
 
+def check_camera(camera) -> None:
+    """The dataset's cameras are centred pinholes (camera_angle_x only): refuse what they cannot say."""
+    data = camera.data
+    if data.type != "PERSP":
+        raise InputError(f"camera {camera.name!r} is {data.type.lower()}; spike datasets need a perspective "
+                         f"camera (Camera > Lens > Type: Perspective)")
+    if data.shift_x or data.shift_y:
+        raise InputError(f"camera {camera.name!r} has a lens shift ({data.shift_x:g}, {data.shift_y:g}); the "
+                         f"dataset's cameras are centred: set Shift X and Y to 0")
+
+
 def camera_angle_x(camera, width: int, height: int) -> float:
     """The camera's horizontal field of view (radians) for a ``width`` x ``height`` image."""
     data = camera.data
@@ -241,6 +252,9 @@ def configure(scene, settings: RenderSettings) -> None:
     scene.view_settings.view_transform = "Standard"
     scene.view_settings.look = "None"
     scene.view_settings.exposure, scene.view_settings.gamma = 0.0, 1.0
+    scene.view_settings.use_curve_mapping = False
+    if hasattr(scene.view_settings, "use_white_balance"):  # Blender 4.3+
+        scene.view_settings.use_white_balance = False
     scene.display_settings.display_device = "sRGB"
     if settings.engine == "cycles":
         _configure_cycles(scene, settings)
@@ -252,6 +266,10 @@ def _configure_cycles(scene, settings: RenderSettings) -> None:
     c = scene.cycles
     c.device = "CPU"
     c.samples = settings.samples
+    c.use_layer_samples = "IGNORE"  # a view layer's own sample count would override ours
+    c.film_exposure, c.time_limit = 1.0, 0.0  # radiance as rendered; every sample, however long it takes
+    c.use_sample_subset, c.sample_offset = False, 0
+    c.auto_scrambling_distance, c.scrambling_distance = False, 1.0
     c.use_adaptive_sampling = False
     c.use_denoising = bool(settings.denoise)
     if settings.denoise:  # deterministic: a pure function of the (noisy) image and its passes
@@ -282,7 +300,10 @@ SAVED = ("render.engine", "render.resolution_x", "render.resolution_y", "render.
          "render.use_motion_blur", "render.use_border", "render.use_crop_to_border", "render.border_min_x",
          "render.border_max_x", "render.border_min_y", "render.border_max_y", "render.filepath",
          "render.image_settings.file_format", "render.image_settings.color_mode", "render.image_settings.color_depth", "view_settings.view_transform",
-         "view_settings.look", "view_settings.exposure", "view_settings.gamma", "cycles.samples",
+         "view_settings.look", "view_settings.exposure", "view_settings.gamma", "view_settings.use_curve_mapping",
+         "view_settings.use_white_balance", "cycles.samples", "cycles.use_layer_samples", "cycles.film_exposure",
+         "cycles.time_limit", "cycles.use_sample_subset", "cycles.sample_offset", "cycles.auto_scrambling_distance",
+         "cycles.scrambling_distance",
          "cycles.use_adaptive_sampling", "cycles.use_denoising", "cycles.denoiser",
          "cycles.denoising_input_passes", "cycles.denoising_prefilter", "cycles.denoising_quality",
          "cycles.denoising_use_gpu", "cycles.use_animated_seed", "cycles.seed",
@@ -297,9 +318,10 @@ def save_settings(scene, camera) -> dict:
     out = {}
     for path in SAVED:
         owner, attr = _owner(scene, path)
-        out[path] = getattr(owner, attr)
+        if hasattr(owner, attr):  # (view_settings.use_white_balance is new in Blender 4.3)
+            out[path] = getattr(owner, attr)
     out["stamps"] = {n: getattr(scene.render, n) for n in dir(scene.render) if n.startswith("use_stamp")}
-    out["camera"] = (scene.camera, camera.matrix_world.copy())
+    out["camera"] = (scene.camera, camera.matrix_world.copy(), camera.data.dof.use_dof)
     return out
 
 
@@ -308,11 +330,11 @@ def restore_settings(scene, camera, saved: dict) -> None:
         owner, attr = _owner(scene, path)
         try:
             setattr(owner, attr, saved[path])
-        except (AttributeError, TypeError, ValueError):  # a value no longer valid is left as is
+        except (AttributeError, KeyError, TypeError, ValueError):  # a value no longer valid is left as is
             pass
     for name, value in saved["stamps"].items():
         setattr(scene.render, name, value)
-    scene.camera, camera.matrix_world = saved["camera"]
+    scene.camera, camera.matrix_world, camera.data.dof.use_dof = saved["camera"]
 
 
 def _owner(scene, path: str):
@@ -336,8 +358,10 @@ class BlenderRenderer:
     def __init__(self, scene, camera, settings: RenderSettings, quiet: bool = True, crop_points=None):
         self.scene, self.camera, self.settings, self.quiet = scene, camera, settings, quiet
         self.crop_points = None if crop_points is None else np.asarray(crop_points, dtype=np.float64)
+        check_camera(camera)
         scene.camera = camera
         configure(scene, settings)
+        camera.data.dof.use_dof = False  # a pinhole, as the dataset's cameras
 
     def camera_angle_x(self) -> float:
         return camera_angle_x(self.camera, self.settings.width, self.settings.height)
