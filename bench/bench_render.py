@@ -1,7 +1,7 @@
 """Rendering speed and the choice of the default Cycles samples (docs/rendering.md).
 
     python bench/bench_render.py speed  [--scenes lego,mic] [--views 2] [--resolution 400] [--samples N] [--denoise 0/1]
-                                        [--crop 1/0]
+                                        [--crop 1/0] [--motion DEG]
     python bench/bench_render.py noise  [--scenes ...] [--samples 1,2,4,8,16] [--reference 512]
                                         [--subframes 16] [--motion 1.0] [--resolution 200] [--denoise 1,2,4]
 
@@ -25,6 +25,7 @@ for every scene.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import os
 import tempfile
 import time
@@ -35,7 +36,7 @@ import numpy as np
 from spikegen import camera as cm
 from spikegen.presets import get_sensor
 from spikegen.recon import rate_to_radiance, tfp
-from spikegen.render import RenderJob, view_render_seed
+from spikegen.render import RenderFolder, RenderJob, render_steps, view_render_seed
 from spikegen.render_blender import BlenderRenderer, RenderSettings, build_bpy_scene, builtin_renderer
 from spikegen.scenes import SCENES, build_scene
 from spikegen.sensor import simulate
@@ -52,37 +53,36 @@ def radiance(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def speed(scenes, views: int, resolution: int, samples: int | None = None, denoise: bool | None = None,
-          crop: bool = True) -> None:
+          crop: bool = True, motion_deg: float = cm.DEFAULT_MOTION_DEG) -> None:
     given = {"samples": samples, "denoise": denoise}
-    job = RenderJob("x", **{k: v for k, v in given.items() if v is not None})
-    print(f"# seconds per view: {job.subframes} sub-frames (EXR) + 1 PNG at {resolution} x {resolution}, "
-          f"samples {job.samples} (PNG {job.png_samples}), denoise {job.denoise}, {views} views per scene, "
-          f"{'the box around the object' if crop else 'every pixel'} rendered")
+    base = RenderJob("x", width=resolution, height=resolution, views=(views, 0, 0), motion_deg=motion_deg,
+                     **{k: v for k, v in given.items() if v is not None})
+    print(f"# seconds per view: {base.subframes} sub-frames (EXR) + 1 PNG at {resolution} x {resolution}, "
+          f"samples {base.samples} (PNG {base.png_render_samples}), denoise {base.denoise}, motion {motion_deg} deg, "
+          f"{views} views per scene, {'the box around the object' if crop else 'every pixel'} rendered")
     print(f"# load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
     print(f"{'scene':<10} {'build s':>8} {'s/view':>8} {'cpu s/view':>11} {'s/image':>8} {'box area':>9}")
-    rig = cm.make_views("train", views, job.subframes, job.motion_deg)
     all_times = []
     with tempfile.TemporaryDirectory() as tmp:
         for name in scenes:
+            job = dataclasses.replace(base, scene=name)
             t0 = time.perf_counter()
-            r = builtin_renderer(name, RenderSettings.for_job(job, width=resolution, height=resolution))
+            r = builtin_renderer(name, RenderSettings.for_job(job))
             if not crop:
                 r.crop_points = None
             build = time.perf_counter() - t0
+            folder = RenderFolder.open(tmp, job)
             t0, c0 = time.perf_counter(), time.process_time()
-            areas = []
-            for v in rig:
-                r.set_view_seed(view_render_seed(0, v.split, v.index))
-                for k, pose in enumerate(v.subframe_poses):
-                    r.render_exr(pose, Path(tmp) / f"{name}_{v.index}_{k}.exr")
-                    box = r.crop_box(pose) or (0, resolution, 0, resolution)
-                    areas.append((box[1] - box[0]) * (box[3] - box[2]) / resolution ** 2)
-                r.render_png(v.pose, Path(tmp) / f"{name}_{v.index}.png")
+            for _ in render_steps(folder, r):  # the path `spikegen render` takes
+                pass
             per_view = (time.perf_counter() - t0) / views
             cpu = (time.process_time() - c0) / views
             all_times.append((per_view, cpu))
+            full = (0, resolution, 0, resolution)
+            boxes = [r.crop_box(p) or full for v in job.rig()["train"] for p in v.subframe_poses]
+            area = np.mean([(b[1] - b[0]) * (b[3] - b[2]) for b in boxes]) / resolution ** 2
             print(f"{name:<10} {build:8.2f} {per_view:8.2f} {cpu:11.2f} {per_view / (job.subframes + 1):8.3f} "
-                  f"{np.mean(areas):9.2f}", flush=True)
+                  f"{area:9.2f}", flush=True)
     mean = np.mean(all_times, axis=0)
     print(f"{'mean':<10} {'':>8} {mean[0]:8.2f} {mean[1]:11.2f}")
 
@@ -149,14 +149,14 @@ def main() -> None:
     ap.add_argument("--crop", type=int, default=1, help="speed: 1 renders the box around the object (the "
                     "default for built-in scenes), 0 every pixel")
     ap.add_argument("--subframes", type=int, default=16, help="noise: sub-frames averaged (1 = one static frame)")
-    ap.add_argument("--motion", type=float, default=cm.DEFAULT_MOTION_DEG, help="noise: camera motion (deg)")
+    ap.add_argument("--motion", type=float, default=cm.DEFAULT_MOTION_DEG, help="camera motion (deg)")
     a = ap.parse_args()
     a.samples_given = a.samples is not None
     a.samples = a.samples or "1,2,4,8,16"
     scenes = [s for s in a.scenes.split(",") if s]
     if a.what == "speed":
         speed(scenes, a.views, a.resolution or 400, int(a.samples) if a.samples_given else None,
-              None if a.denoise is None else bool(int(a.denoise)), bool(a.crop))
+              None if a.denoise is None else bool(int(a.denoise)), bool(a.crop), a.motion)
     else:
         noise(scenes, [int(s) for s in a.samples.split(",")], a.reference, a.resolution or 200, a.subframes,
               a.motion, [int(s) for s in a.denoise.split(",")] if a.denoise else [])

@@ -76,12 +76,36 @@ def test_blender_camera_matrices_equal_the_poses():
 
 
 def test_subframes_of_a_static_view_are_identical(tmp_path):
-    """One noise pattern per view: with no motion the K sub-frames are the same bytes (noise
-    that changed between sub-frames would turn into spurious spikes)."""
-    folder = _render(tmp_path, RenderJob("materials", views=(1, 0, 0), motion_deg=0.0, **SMALL))
+    """One noise pattern per view: one pose rendered twice with the view's seed is the same bytes
+    (noise that changed between sub-frames would turn into spurious spikes), so a static view's
+    K sub-frames are rendered once and copied."""
+    scene, camera = build_bpy_scene(build_scene("materials"))
+    r = BlenderRenderer(scene, camera, RenderSettings(48, 48, samples=4))
+    pose = cm.make_views("train", 1)[0].pose
+    r.set_view_seed(5)
+    r.render_exr(pose, tmp_path / "a.exr")
+    r.render_exr(cm.make_views("train", 2)[1].pose, tmp_path / "other.exr")
+    r.render_exr(pose, tmp_path / "b.exr")
+    assert (tmp_path / "a.exr").read_bytes() == (tmp_path / "b.exr").read_bytes()
+
+    class Counting:  # the real renderer, counting its renders
+        def __getattr__(self, name):
+            return getattr(real, name)
+
+        def render_exr(self, pose, path):
+            calls.append(path)
+            real.render_exr(pose, path)
+
+    job = RenderJob("materials", views=(1, 0, 0), motion_deg=0.0, **SMALL)
+    real, calls = renderer_for(job), []
+    folder = RenderFolder.open(tmp_path / "static", job)
+    for _ in render_steps(folder, Counting()):
+        pass
     png, exrs = view_paths(folder.path, folder.job.rig()["train"][0])
+    assert calls == exrs[:1] and len(exrs) == SMALL["subframes"]
     data = [p.read_bytes() for p in exrs]
     assert all(d == data[0] for d in data)
+    assert not list(folder.path.rglob("*.part"))
 
 
 def _tree(root):

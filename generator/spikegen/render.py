@@ -20,13 +20,16 @@ without freezing Blender, and the command line can show a progress bar.
 from __future__ import annotations
 
 import json
+import shutil
 import zlib
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
+import numpy as np
+
 from .camera import CAMERA_ANGLE_X, DEFAULT_MOTION_DEG, SPLITS, View, make_rig
 from .errors import InputError, OutputError
-from .spikeio import remove_stale_parts, sha256_file, write_json_atomic
+from .spikeio import atomic_path, remove_stale_parts, sha256_file, write_json_atomic
 
 RENDER_FORMAT = "spikegen-render/1"
 QUICK = {"resolution": 100, "views": (20, 4, 8)}  # --quick: a small dataset in well under 5 minutes
@@ -199,12 +202,21 @@ class RenderFolder:
 
 
 def render_view_steps(folder: RenderFolder, renderer, view: View):
-    """Render one view, yielding after each image (K EXRs, then the PNG); records it at the end."""
+    """Render one view, yielding after each image (K EXRs, then the PNG); records it at the end.
+
+    A sub-frame whose pose equals the one before it (a static camera, ``--motion 0``) is a copy
+    of that file: one pose and one seed render the same bytes (tests/test_render.py)."""
     png, exrs = view_paths(folder.path, view)
     if folder.job.engine == "cycles":
         renderer.set_view_seed(view_render_seed(folder.job.seed, view.split, view.index))
+    last = None
     for pose, path in zip(view.subframe_poses, exrs):
-        renderer.render_exr(pose, path)
+        if last is not None and np.array_equal(pose, last[0]):
+            with atomic_path(path) as tmp:
+                shutil.copyfile(last[1], tmp)
+        else:
+            renderer.render_exr(pose, path)
+        last = (pose, path)
         yield path
     renderer.render_png(view.pose, png)
     yield png
