@@ -1,8 +1,9 @@
 """Build the "Export Spike Dataset" extension zip (documented in blender_addon/README.md).
 
     python blender_addon/build.py [--out dist] [--python-version 3.11] [--platform manylinux_2_28_x86_64]
+                                  [--wheels blender_addon/wheels]
 
-1. builds the project's own wheel (``pip wheel . --no-deps``) into ``blender_addon/wheels``;
+1. builds the project's own wheel (``pip wheel . --no-deps``) into ``blender_addon/wheels`` (or ``--wheels``);
 2. downloads the wheels it needs that Blender does not bundle (click, tqdm, pillow, OpenEXR),
    binary only, for Blender's Python (3.11 for Blender 4.2 - 5.0) and the given platform
    (default: this machine's);
@@ -33,7 +34,7 @@ def pip(*args: str) -> None:
 
 def build_wheels(wheels: Path, python_version: str, platforms: list[str]) -> list[Path]:
     """The project wheel plus the runtime wheels, in ``wheels`` (old ones removed)."""
-    wheels.mkdir(exist_ok=True)
+    wheels.mkdir(parents=True, exist_ok=True)
     for old in wheels.glob("*.whl"):
         old.unlink()
     pip("wheel", str(REPO), "--no-deps", "--no-build-isolation", "-w", str(wheels))
@@ -73,8 +74,10 @@ def main(argv=None) -> int:
     ap.add_argument("--platform", action="append", default=[],
                     help="pip platform tag of the wheels, e.g. manylinux_2_28_x86_64, win_amd64, "
                          "macosx_11_0_arm64 (default: this machine's)")
+    ap.add_argument("--wheels", type=Path, default=HERE / "wheels",
+                    help="folder the wheels are gathered in (default: blender_addon/wheels)")
     args = ap.parse_args(argv)
-    wheels = build_wheels(HERE / "wheels", args.python_version, args.platform)
+    wheels = build_wheels(args.wheels, args.python_version, args.platform)
     dest = write_zip(args.out / f"spike_dataset_export-{version()}.zip", wheels)
     print(dest)
     return 0
