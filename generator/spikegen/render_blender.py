@@ -300,17 +300,16 @@ SAVED = ("render.engine", "render.resolution_x", "render.resolution_y", "render.
          "render.use_motion_blur", "render.use_border", "render.use_crop_to_border", "render.border_min_x",
          "render.border_max_x", "render.border_min_y", "render.border_max_y", "render.filepath",
          "render.image_settings.file_format", "render.image_settings.color_mode", "render.image_settings.color_depth",
-         "view_settings.view_transform", "view_settings.look", "view_settings.exposure", "view_settings.gamma", "view_settings.use_curve_mapping",
-         "view_settings.use_white_balance", "cycles.samples", "cycles.use_layer_samples", "cycles.film_exposure",
-         "cycles.time_limit", "cycles.use_sample_subset", "cycles.sample_offset", "cycles.auto_scrambling_distance",
-         "cycles.scrambling_distance",
-         "cycles.use_adaptive_sampling", "cycles.use_denoising", "cycles.denoiser",
-         "cycles.denoising_input_passes", "cycles.denoising_prefilter", "cycles.denoising_quality",
-         "cycles.denoising_use_gpu", "cycles.use_animated_seed", "cycles.seed",
-         "cycles.max_bounces", "cycles.diffuse_bounces", "cycles.glossy_bounces", "cycles.transmission_bounces",
-         "cycles.transparent_max_bounces", "cycles.caustics_reflective", "cycles.caustics_refractive",
-         "cycles.device", "cycles.use_auto_tile", "cycles.use_guiding", "cycles.pixel_filter_type",
-         "cycles.filter_width", "cycles.sample_clamp_indirect")
+         "view_settings.view_transform", "view_settings.look", "view_settings.exposure", "view_settings.gamma",
+         "view_settings.use_curve_mapping", "view_settings.use_white_balance", "cycles.samples",
+         "cycles.use_layer_samples", "cycles.film_exposure", "cycles.time_limit", "cycles.use_sample_subset",
+         "cycles.sample_offset", "cycles.auto_scrambling_distance", "cycles.scrambling_distance",
+         "cycles.use_adaptive_sampling", "cycles.use_denoising", "cycles.denoiser", "cycles.denoising_input_passes",
+         "cycles.denoising_prefilter", "cycles.denoising_quality", "cycles.denoising_use_gpu",
+         "cycles.use_animated_seed", "cycles.seed", "cycles.max_bounces", "cycles.diffuse_bounces",
+         "cycles.glossy_bounces", "cycles.transmission_bounces", "cycles.transparent_max_bounces",
+         "cycles.caustics_reflective", "cycles.caustics_refractive", "cycles.device", "cycles.use_auto_tile",
+         "cycles.use_guiding", "cycles.pixel_filter_type", "cycles.filter_width", "cycles.sample_clamp_indirect")
 
 
 def save_settings(scene, camera) -> dict:
@@ -353,7 +352,8 @@ class BlenderRenderer:
     Cycles then renders only the box around their image (grown by the pixel filter's reach) and
     leaves the rest of the frame transparent: the same bytes as a full-frame render (Cycles draws
     each pixel's samples from its own coordinates; tests/test_render.py checks every scene) in
-    60-80 % of the time. ``None`` (a user's scene, which may hold anything) renders every pixel."""
+    70-87 % of the time (docs/rendering.md). ``None`` (a user's scene, which may hold anything)
+    renders every pixel."""
 
     def __init__(self, scene, camera, settings: RenderSettings, quiet: bool = True, crop_points=None):
         self.scene, self.camera, self.settings, self.quiet = scene, camera, settings, quiet
