@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import re
+import shutil
 import subprocess
 import sys
 import zipfile
@@ -37,7 +38,13 @@ def build_wheels(wheels: Path, python_version: str, platforms: list[str]) -> lis
     wheels.mkdir(parents=True, exist_ok=True)
     for old in wheels.glob("*.whl"):
         old.unlink()
-    pip("wheel", str(REPO), "--no-deps", "--no-build-isolation", "-w", str(wheels))
+    left_over = REPO / "build"  # setuptools builds in the source tree; leave no stale copy of the code there
+    existed = left_over.exists()
+    try:
+        pip("wheel", str(REPO), "--no-deps", "--no-build-isolation", "-w", str(wheels))
+    finally:
+        if not existed:
+            shutil.rmtree(left_over, ignore_errors=True)
     target = ["--python-version", python_version] + [a for p in platforms for a in ("--platform", p)]
     pip("download", *RUNTIME, "--only-binary=:all:", "--no-deps", "-d", str(wheels), *target)
     return sorted(wheels.glob("*.whl"))

@@ -246,6 +246,7 @@ def configure(scene, settings: RenderSettings) -> None:
     r.use_compositing = r.use_sequencer = False
     r.use_file_extension = False
     r.use_motion_blur = False
+    r.use_border = False  # the whole frame; BlenderRenderer sets a border per pose for built-in scenes
     for name in dir(r):  # no date, render time, host... in the files: bytes must not depend on the run
         if name.startswith("use_stamp"):
             setattr(r, name, False)
@@ -326,10 +327,12 @@ def save_settings(scene, camera) -> dict:
 
 def restore_settings(scene, camera, saved: dict) -> None:
     for path in SAVED:
+        if path not in saved:  # a setting this Blender does not have
+            continue
         owner, attr = _owner(scene, path)
         try:
             setattr(owner, attr, saved[path])
-        except (AttributeError, KeyError, TypeError, ValueError):  # a value no longer valid is left as is
+        except (AttributeError, TypeError, ValueError):  # a value no longer valid is left as is
             pass
     for name, value in saved["stamps"].items():
         setattr(scene.render, name, value)
@@ -352,7 +355,7 @@ class BlenderRenderer:
     Cycles then renders only the box around their image (grown by the pixel filter's reach) and
     leaves the rest of the frame transparent: the same bytes as a full-frame render (Cycles draws
     each pixel's samples from its own coordinates; tests/test_render.py checks every scene) in
-    70-87 % of the time (docs/rendering.md). ``None`` (a user's scene, which may hold anything)
+    76-88 % of the time (docs/rendering.md). ``None`` (a user's scene, which may hold anything)
     renders every pixel."""
 
     def __init__(self, scene, camera, settings: RenderSettings, quiet: bool = True, crop_points=None):
