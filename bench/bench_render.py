@@ -36,7 +36,7 @@ import numpy as np
 from spikegen import camera as cm
 from spikegen.presets import get_sensor
 from spikegen.recon import rate_to_radiance, tfp
-from spikegen.render import RenderFolder, RenderJob, render_steps, view_render_seed
+from spikegen.render import RenderFolder, RenderJob, render_steps, rig_of, view_render_seed
 from spikegen.render_blender import BlenderRenderer, RenderSettings, build_bpy_scene, builtin_renderer
 from spikegen.scenes import SCENES, build_scene
 from spikegen.sensor import simulate
@@ -79,7 +79,7 @@ def speed(scenes, views: int, resolution: int, samples: int | None = None, denoi
             cpu = (time.process_time() - c0) / views
             all_times.append((per_view, cpu))
             full = (0, resolution, 0, resolution)
-            boxes = [r.crop_box(p) or full for v in job.rig()["train"] for p in v.subframe_poses]
+            boxes = [r.crop_box(p) or full for v in rig_of(job)["train"] for p in v.subframe_poses]
             area = np.mean([(b[1] - b[0]) * (b[3] - b[2]) for b in boxes]) / resolution ** 2
             print(f"{name:<10} {build:8.2f} {per_view:8.2f} {cpu:11.2f} {per_view / (job.subframes + 1):8.3f} "
                   f"{area:9.2f}", flush=True)

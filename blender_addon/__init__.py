@@ -17,7 +17,8 @@ import threading
 import bpy
 from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
-from spikegen.render import RenderJob  # the project's wheel, installed with the extension (no bpy)
+from spikegen.errors import SpikegenError
+from spikegen.formats import RenderJob  # the project's wheel, installed with the extension (no bpy)
 
 _JOB = RenderJob("defaults")  # the add-on's defaults are `spikegen render`'s
 DEFAULTS = {"intensities": "16,32,64", "resolution": _JOB.width, "views_train": _JOB.views[0],
@@ -55,24 +56,55 @@ SpikeExportSettings = type("SpikeExportSettings", (bpy.types.PropertyGroup,),
                            {"__annotations__": _properties()})
 
 
-def validate(props, context) -> list[str]:
-    """Messages for the user; empty when the export can start."""
+def parse_intensities(text: str) -> list:
+    """``"16,32,64"`` -> ``[16.0, 32.0, 64.0]``; a token that is not a number stays as text, so
+    the shared check names it."""
+    out = []
+    for t in (t.strip() for t in text.split(",")):
+        if t:
+            try:
+                out.append(float(t))
+            except ValueError:
+                out.append(t)
+    return out
+
+
+def job_from(props, scene, camera, identify: bool = True) -> RenderJob:
+    """The render job of these settings: the same record `spikegen render` builds. ``identify``:
+    hash the saved .blend to name the dataset (skipped for checks, which do not need the name)."""
+    from spikegen.render_blender import camera_angle_x
+
+    name, source = _dataset_name(props, scene) if identify else ("scene", "scene")
+    res = props.resolution
+    return RenderJob(name, res, res, (props.views_train, props.views_val, props.views_test), props.subframes,
+                     props.frames, props.motion_deg, "cycles", props.samples,
+                     RenderJob.png_samples,  # as the CLI: the job raises it to `samples` if need be
+                     props.seed, camera_angle_x(camera, res, res), source, props.denoise)
+
+
+def validate(props, context, full: bool = False) -> list[str]:
+    """Messages for the user; empty when the export can start. The job, intensities and sensor go
+    through the check `spikegen render` makes (:func:`spikegen.render.check_export`), before any
+    rendering; ``full`` also loads the sensor (the panel, redrawn often, only checks its name)."""
+    from spikegen.presets import sensor_problem
+    from spikegen.render import check_export
+
     msgs = []
     if not props.directory:
         msgs.append("choose an output folder")
-    if context.scene.camera is None:
-        msgs.append("the scene has no active camera")
+    camera = context.scene.camera
+    if camera is None:
+        return msgs + ["the scene has no active camera"]
     try:
-        levels = [float(t) for t in props.intensities.split(",") if t.strip()]
-        if not levels or min(levels) <= 0:
-            raise ValueError
-    except ValueError:
-        msgs.append(f"intensities {props.intensities!r}: expected positive numbers such as 16,32,64")
-    if props.views_train + props.views_val + props.views_test == 0:
-        msgs.append("at least one view is needed")
-    if (props.resolution * props.resolution) % 8:
-        msgs.append("resolution squared must be a multiple of 8")
-    return msgs
+        job = job_from(props, context.scene, camera, identify=False)
+    except SpikegenError as exc:  # a camera the dataset cannot describe
+        return msgs + [str(exc)]
+    levels = parse_intensities(props.intensities)
+    if full:
+        return msgs + check_export(job, levels, props.sensor, props.seed)
+    msgs += check_export(job, levels, "ideal", props.seed)
+    problem = sensor_problem(props.sensor)
+    return msgs + ([problem] if problem else [])
 
 
 def _dataset_name(props, scene) -> tuple[str, str]:
@@ -90,18 +122,13 @@ class ExportSession:
 
     def __init__(self, props, context):
         from spikegen.render import RenderFolder, check_job, images_per_view, render_steps
-        from spikegen.render_blender import BlenderRenderer, RenderSettings, camera_angle_x, save_settings
+        from spikegen.render_blender import BlenderRenderer, RenderSettings, save_settings
 
         scene, camera = context.scene, context.scene.camera
         self.scene, self.camera = scene, camera
-        self.levels = [float(t) for t in props.intensities.split(",") if t.strip()]
+        self.levels = [float(t) for t in parse_intensities(props.intensities)]
         self.sensor, self.seed, self.out = props.sensor, props.seed, bpy.path.abspath(props.directory)
-        name, source = _dataset_name(props, scene)
-        res = props.resolution
-        job = RenderJob(name, res, res, (props.views_train, props.views_val, props.views_test), props.subframes,
-                        props.frames, props.motion_deg, "cycles", props.samples,
-                        RenderJob.png_samples,  # as the CLI: the job raises it to `samples` if need be
-                        props.seed, camera_angle_x(camera, res, res), source, props.denoise)
+        job = job_from(props, scene, camera)
         check_job(job)
         self.folder = RenderFolder.open(self.out, job)
         self.total = len(self.folder.pending()) * images_per_view(job)
@@ -134,15 +161,12 @@ class ExportSession:
             self.saved = None
 
     def convert(self) -> list:
-        """Spike datasets, one per intensity (no bpy: safe in a thread); stops between intensities."""
+        """Spike datasets, every intensity in one pass over the renders (no bpy: safe in a thread);
+        a cancel stops it between views (finished views are kept; a rerun finishes it)."""
         from spikegen.render import convert_all
 
-        outs = []
-        for level in self.levels:
-            if self.stop.is_set():
-                break
-            outs += convert_all(self.folder, self.out, [level], sensor=self.sensor, seed=self.seed, progress=False)
-        return outs
+        return convert_all(self.folder, self.out, self.levels, sensor=self.sensor, seed=self.seed, progress=False,
+                           stop=self.stop.is_set)
 
     def start_convert(self) -> None:
         self.restore()
@@ -176,7 +200,7 @@ class EXPORT_SCENE_OT_spike_dataset(bpy.types.Operator):
         return {"RUNNING_MODAL"}
 
     def execute(self, context):
-        msgs = validate(self, context)
+        msgs = validate(self, context, full=True)
         if msgs:
             self.report({"ERROR"}, "; ".join(msgs))
             return {"CANCELLED"}

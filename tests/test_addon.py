@@ -77,8 +77,15 @@ def test_errors_are_reported_and_cancelled(addon, tmp_path):
     build_bpy_scene(build_scene("mic"))
     with pytest.raises(RuntimeError, match="choose an output folder"):
         bpy.ops.export_scene.spike_dataset(directory="", **SMALL)
-    with pytest.raises(RuntimeError, match="intensities"):
+    with pytest.raises(RuntimeError, match="--intensity 'abc': expected a number"):
         bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), **{**SMALL, "intensities": "abc"})
+    # the checks `spikegen render` makes, before anything is rendered
+    with pytest.raises(RuntimeError, match="above 4096 every pixel saturates"):
+        bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), **{**SMALL, "intensities": "16,5000"})
+    with pytest.raises(RuntimeError, match="unknown sensor 'papr'"):
+        bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), sensor="papr", **SMALL)
+    with pytest.raises(RuntimeError, match="/nonexistent/cam.json: no such sensor file"):
+        bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), sensor="/nonexistent/cam.json", **SMALL)
     bpy.context.scene.camera = None
     with pytest.raises(RuntimeError, match="no active camera"):
         bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), **SMALL)

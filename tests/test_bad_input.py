@@ -460,8 +460,10 @@ def info_missing_file(w):
 
 
 @case
-def info_dat_without_size(w):
-    return ["info", dat(w)], "r_0.dat"
+def info_dat_without_size(w):  # outside a dataset folder: no config.yaml to give the size
+    loose = w / "loose.dat"
+    shutil.copyfile(dat(w), loose)
+    return ["info", loose], "loose.dat"
 
 
 @case

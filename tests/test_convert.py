@@ -39,8 +39,9 @@ def test_lego_dataset_follows_the_spec(tmp_path, lego_dir):
     d = out[1]
     doc = json.loads((d / "transforms_train.json").read_text())
     assert doc["camera_angle_x"] == pytest.approx(0.6911112070083618)
-    assert doc["spike"] == {"height": 32, "width": 32, "frames": 256, "subframes": 1, "intensity": 64.0,
-                            "readout_hz": 20000, "format": "dat"}
+    assert doc["spike"] == {"height": 32, "width": 32, "frames": 256, "subframes": 1, "intensity": 64,
+                            "readout_hz": 20000, "format": "dat", "background": "white"}
+    assert isinstance(doc["spike"]["intensity"], int)  # written as the integer it was given
     assert len(doc["frames"]) == 100
     f0 = doc["frames"][0]
     assert f0["file_path"] == "./train/r_0" and f0["spike_path"] == "./train/r_0.dat"
@@ -53,7 +54,10 @@ def test_lego_dataset_follows_the_spec(tmp_path, lego_dir):
     assert (d / "sensor.json").is_file() and (d / "sensor.npz").is_file()
     man = json.loads((d / "manifest.json").read_text())
     assert man["parameters"]["intensity"] == 64 and man["seed"] == 0 and man["generator"].startswith("spikegen")
-    assert len(man["files"]) == 200 + 3
+    # train and val: 100 views each, a PNG and a .dat per view; 2 transforms, the sensor pair, config.yaml
+    assert len(man["files"]) == 2 * 100 * 2 + 2 + 2 + 1
+    cfg = (d / "config.yaml").read_text()
+    assert "spike_h: 32\nspike_w: 32\n" in cfg and "  - val/r_99.dat\n" in cfg
     assert verify(d) == []
     # brighter intensity, more spikes; object darker than background
     lo = read_dat(out[0] / "train" / "r_0.dat", 32, 32).mean()

@@ -8,7 +8,7 @@ pytest.importorskip("bpy")
 
 from spikegen import camera as cm  # noqa: E402
 from spikegen.cli import main as cli_main  # noqa: E402
-from spikegen.render import RenderFolder, RenderJob, convert_all, render_steps, view_paths  # noqa: E402
+from spikegen.render import RenderFolder, RenderJob, convert_all, render_steps, rig_of, view_paths  # noqa: E402
 from spikegen.render_blender import BlenderRenderer, RenderSettings, build_bpy_scene, renderer_for  # noqa: E402
 from spikegen.scenes import SCENES, build_scene  # noqa: E402
 from spikegen.spikeio import read_exr, read_png, read_spikes  # noqa: E402
@@ -101,7 +101,7 @@ def test_subframes_of_a_static_view_are_identical(tmp_path):
     folder = RenderFolder.open(tmp_path / "static", job)
     for _ in render_steps(folder, Counting()):
         pass
-    png, exrs = view_paths(folder.path, folder.job.rig()["train"][0])
+    png, exrs = view_paths(folder.path, rig_of(folder.job)["train"][0])
     assert calls == exrs[:1] and len(exrs) == SMALL["subframes"]
     data = [p.read_bytes() for p in exrs]
     assert all(d == data[0] for d in data)

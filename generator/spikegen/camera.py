@@ -17,29 +17,18 @@ so its azimuth offset is ``motion_deg * ((k + 0.5) / K - 0.5)``. The mid-exposur
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
 
 import numpy as np
 
+from .formats import CAMERA_ANGLE_X, DEFAULT_MOTION_DEG, SPLITS, ViewRecord, focal_px
 from .seeding import _word
 
 RADIUS = 4.0311  # NeRF-synthetic camera distance
-CAMERA_ANGLE_X = 0.6911112070083618  # 50 mm lens, 36 mm sensor width
 NEAR, FAR = 2.0, 6.0
 TEST_ELEVATION_DEG = 30.0
-DEFAULT_MOTION_DEG = 1.0  # azimuth swept during one view's exposure
-SPLITS = ("train", "val", "test")
 DEFAULT_VIEWS = {"train": 100, "val": 100, "test": 200}
-
-
-@dataclass(frozen=True)
-class View:
-    """One view: its mid-exposure pose ``[4, 4]`` and its sub-frame poses ``[K, 4, 4]``."""
-
-    split: str
-    index: int
-    pose: np.ndarray
-    subframe_poses: np.ndarray
+__all__ = ["CAMERA_ANGLE_X", "DEFAULT_MOTION_DEG", "SPLITS", "focal_px", "make_rig", "make_views", "crop_window",
+           "project", "look_at", "subframe_poses"]
 
 
 def look_at(position: np.ndarray, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -100,25 +89,20 @@ def split_directions(split: str, count: int, seed: int = 0) -> np.ndarray:
 
 
 def make_views(split: str, count: int, subframes: int = 16, motion_deg: float = DEFAULT_MOTION_DEG,
-               seed: int = 0, radius: float = RADIUS) -> list[View]:
+               seed: int = 0, radius: float = RADIUS) -> list[ViewRecord]:
     """The ``count`` views of ``split``: deterministic in (split, count, seed)."""
     views = []
     for i, d in enumerate(split_directions(split, count, seed)):
         pose = look_at(radius * d)
-        views.append(View(split, i, pose, subframe_poses(pose, subframes, motion_deg)))
+        views.append(ViewRecord(split, i, pose, subframe_poses(pose, subframes, motion_deg)))
     return views
 
 
 def make_rig(counts: dict | None = None, subframes: int = 16, motion_deg: float = DEFAULT_MOTION_DEG,
-             seed: int = 0) -> dict[str, list[View]]:
-    """All splits: ``{"train": [View], "val": [...], "test": [...]}`` with ``counts`` views each."""
+             seed: int = 0) -> dict[str, list[ViewRecord]]:
+    """All splits: ``{"train": [ViewRecord], "val": [...], "test": [...]}`` with ``counts`` views each."""
     counts = dict(DEFAULT_VIEWS if counts is None else counts)
     return {s: make_views(s, int(counts.get(s, 0)), subframes, motion_deg, seed) for s in SPLITS}
-
-
-def focal_px(width: int, camera_angle_x: float = CAMERA_ANGLE_X) -> float:
-    """Focal length in pixels of a ``width``-pixel image."""
-    return 0.5 * width / math.tan(0.5 * camera_angle_x)
 
 
 def crop_window(points: np.ndarray, pose: np.ndarray, width: int, height: int,

@@ -8,10 +8,10 @@ from pathlib import Path
 
 import click
 
-from .camera import DEFAULT_MOTION_DEG
 from .errors import InputError
-from .render import QUICK, RenderFolder, RenderJob, check_job, convert_all, identify_blend, images_per_view, \
-    parse_views, render_steps
+from .formats import DEFAULT_MOTION_DEG, QUICK, RenderJob
+from .render import RenderFolder, check_export, convert_all, identify_blend, images_per_view, parse_views, \
+    render_steps
 from .scenes import SCENES
 
 
@@ -47,16 +47,17 @@ from .scenes import SCENES
 def render(scene, intensities, out_dir, resolution, views, subframes, frames, motion_deg, samples, png_samples,
            denoise, engine, blend, sensor, seed, workers, scheduler, quick):
     """Render a scene through Blender and write <out>/<scene>_i<I>/ for each intensity."""
-    from .dataset import check_intensity
-
-    levels = [check_intensity(i) for i in intensities]  # fail before rendering anything
     name, source = _scene_name(scene, blend)
     res = resolution or (QUICK["resolution"] if quick else 400)
     counts = parse_views(views) if views else (QUICK["views"] if quick else (100, 100, 200))
     job = RenderJob(name, res, res, counts, subframes, frames, motion_deg, engine, samples, png_samples, seed,
                     source=source, denoise=denoise)
-    check_job(job)
-    _check_conversion(sensor, res, seed, workers)
+    msgs = check_export(job, intensities, sensor, seed)  # fail before rendering anything
+    if workers < 1:
+        msgs.append(f"--workers must be a positive integer, got {workers}")
+    if msgs:
+        raise InputError(msgs[0])
+    levels = [float(i) for i in intensities]
     client = None
     if scheduler is not None:  # connect before rendering: a bad address fails in seconds, not hours
         from .parallel import connect
@@ -70,15 +71,6 @@ def render(scene, intensities, out_dir, resolution, views, subframes, frames, mo
     finally:
         if client is not None:
             client.close()
-
-
-def _check_conversion(sensor: str, resolution: int, seed: int, workers: int) -> None:
-    """Options only the conversion uses, checked before Blender starts."""
-    from .presets import get_sensor
-
-    if workers < 1:
-        raise InputError(f"--workers must be a positive integer, got {workers}")
-    get_sensor(sensor, resolution, resolution, seed)
 
 
 def _scene_name(scene, blend) -> tuple[str, str]:

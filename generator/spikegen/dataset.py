@@ -3,55 +3,43 @@
 Sources:
 
 - a NeRF-synthetic folder: ``transforms_<split>.json`` + PNGs; static views, ``K = 1``;
-- a render folder written by ``spikegen render`` (``render.json`` ``"format":
-  "spikegen-render/1"``): per view an RGBA PNG at mid-exposure and ``K`` linear RGBA EXR
-  sub-frames ``r_N_subKK.exr``, composited onto white here.
+- a render folder written by ``spikegen render`` (``render.json``, :class:`~spikegen.formats.RenderDoc`):
+  per view an RGBA PNG at mid-exposure and ``K`` linear RGBA EXR sub-frames ``r_N_subKK.exr``,
+  composited onto white here.
 
-Output per intensity: ``transforms_<split>.json`` (NeRF layout + a ``"spike"`` block and per
-frame ``spike_path`` and ``subframe_transform_matrices``), ``<split>/r_N.png`` (ground truth),
-``<split>/r_N.dat`` (spikes), ``sensor.json`` + ``sensor.npz``, and last ``manifest.json``.
-Every file is written atomically; a rerun skips views already written and ends with the same
-bytes; a folder holding another job's output is never overwritten.
+Output per intensity: ``transforms_<split>.json`` (:class:`~spikegen.formats.Transforms`: NeRF
+layout + a ``"spike"`` block and per frame ``spike_path`` and ``subframe_transform_matrices``),
+``<split>/r_N.png`` (ground truth), ``<split>/r_N.dat`` (spikes), ``sensor.json`` + ``sensor.npz``,
+``config.yaml`` (SpikeCV's size keys and the file list), and last ``manifest.json``. Every
+intensity is made in one pass over the source: each view is read once and simulated at every
+intensity. Every file is written atomically; a rerun skips views already written and ends with
+the same bytes; a folder holding another job's output is never overwritten.
 """
 from __future__ import annotations
 
-import json
-import math
 import os
 import shutil
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
 
 from . import __version__
 from .errors import InputError, OutputError
+from .formats import (SPLITS, ConvertParams, ConvertTask, FileEntry, LevelOutput, Manifest, RenderDoc, Transforms,
+                      ViewRecord, check_intensity, intensity_label, read_json, spikecv_config)
 from .parallel import connect, run_tasks
 from .presets import get_sensor
 from .seeding import view_seed
 from .sensor import Sensor, simulate
 from .sensorfile import save_sensor
 from .spikeio import (LUMA, atomic_path, check_radiance, exr_size, exr_to_radiance, read_exr, read_png,
-                      remove_stale_parts, sha256_file, srgb_to_linear, linear_to_srgb, write_dat, write_json_atomic,
-                      write_png)
+                      remove_stale_parts, sha256_file, srgb_to_linear, linear_to_srgb, write_bytes_atomic, write_dat,
+                      write_json_atomic, write_png)
 
-SPLITS = ("train", "val", "test")
-READOUT_HZ = 20000
-MAX_INTENSITY = 4096.0
 JOB_FILE = ".spikegen-job.json"
-RENDER_FORMAT = "spikegen-render/1"
-
-
-@dataclass(frozen=True)
-class View:
-    split: str
-    index: int
-    file_path: str  # "./train/r_0"
-    transform_matrix: list
-    subframe_matrices: list
-    png: Path
-    exrs: tuple = ()
-    extra: dict = field(default_factory=dict)
+CONFIG_YAML = "config.yaml"
+__all__ = ["check_intensity", "convert", "open_source", "verify", "Source"]
 
 
 @dataclass(frozen=True)
@@ -63,7 +51,7 @@ class Source:
     width: int
     height: int
     subframes: int
-    views: tuple
+    views: tuple  # ViewRecord (root = the source folder)
     info: dict = field(default_factory=dict)
 
 
@@ -77,26 +65,6 @@ def open_source(path) -> Source:
     if any((root / f"transforms_{s}.json").is_file() for s in SPLITS):
         return _open_nerf(root)
     raise InputError(f"{root}: neither a render folder (render.json) nor a NeRF-synthetic folder (transforms_*.json)")
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        doc = json.loads(path.read_text())
-    except (OSError, ValueError) as exc:
-        raise InputError(f"{path}: not readable JSON ({exc.__class__.__name__}: {exc})") from None
-    if not isinstance(doc, dict):
-        raise InputError(f"{path}: expected a JSON object")
-    return doc
-
-
-def _matrix(value, where: str) -> list:
-    try:
-        m = np.asarray(value, dtype=np.float64)
-    except (TypeError, ValueError):
-        m = None
-    if m is None or m.shape != (4, 4) or not np.all(np.isfinite(m)):
-        raise InputError(f"{where}: transform_matrix must be a finite 4x4 matrix")
-    return m.tolist()
 
 
 def _png_size(path: Path) -> tuple[int, int]:
@@ -117,21 +85,13 @@ def _open_nerf(root: Path) -> Source:
         jpath = root / f"transforms_{split}.json"
         if not jpath.is_file():
             continue
-        doc = _read_json(jpath)
-        frames = doc.get("frames")
-        angle = doc.get("camera_angle_x")
-        if not isinstance(frames, list) or not frames or not isinstance(angle, (int, float)):
-            raise InputError(f"{jpath}: needs a number 'camera_angle_x' and a non-empty list 'frames'")
+        doc = read_json(jpath)
+        frames, angle = doc.get("frames"), doc.get("camera_angle_x")
+        if not isinstance(frames, list) or not frames or not isinstance(angle, (int, float)) or not 0 < angle < 3.2:
+            raise InputError(f"{jpath}: needs a field of view 'camera_angle_x' (radians) and a non-empty list 'frames'")
         cam = float(angle) if cam is None else cam
-        for i, fr in enumerate(frames):
-            where = f"{jpath} frame {i}"
-            if not isinstance(fr, dict) or not isinstance(fr.get("file_path"), str):
-                raise InputError(f"{where}: needs a 'file_path'")
-            m = _matrix(fr.get("transform_matrix"), where)
-            fp = fr["file_path"]
-            png = root / (fp if fp.endswith(".png") else fp + ".png")
-            extra = {k: v for k, v in fr.items() if k in ("rotation",)}
-            views.append(View(split, i, f"./{split}/r_{i}", m, [m], png, (), extra))
+        views += [ViewRecord.from_transforms_frame(fr, split, i, root, f"{jpath} frame {i}", keep=("rotation",))
+                  for i, fr in enumerate(frames)]
     w, h = _same_size(views, _png_size, lambda v: (v.png,))
     return Source("nerf", root, root.resolve().name, cam, w, h, 1, tuple(views))
 
@@ -152,38 +112,16 @@ def _same_size(views, size_of, files_of, expected=None) -> tuple[int, int]:
 
 def _open_render(root: Path) -> Source:
     jpath = root / "render.json"
-    doc = _read_json(jpath)
-    if doc.get("format") != RENDER_FORMAT:
-        raise InputError(f"{jpath}: not a spikegen render folder (expected \"format\": \"{RENDER_FORMAT}\")")
-    try:
-        K, w, h = int(doc["subframes"]), int(doc["width"]), int(doc["height"])
-        cam, name, splits = float(doc["camera_angle_x"]), str(doc["scene"]), doc["splits"]
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"{jpath}: missing or bad field {exc}") from None
-    if not isinstance(splits, dict) or not all(isinstance(splits.get(s, []), list) for s in SPLITS):
-        raise InputError(f"{jpath}: 'splits' must map train/val/test to lists of views")
-    if K < 1 or w < 1 or h < 1:
-        raise InputError(f"{jpath}: subframes, width and height must be positive")
-    views = []
-    for split in SPLITS:
-        for i, fr in enumerate(splits.get(split, [])):
-            where = f"{jpath} {split} view {i}"
-            if not isinstance(fr, dict) or not isinstance(fr.get("file_path", ""), str):
-                raise InputError(f"{where}: expected an object with a string 'file_path'")
-            fp = fr.get("file_path", f"./{split}/r_{i}")
-            base = root / fp
-            subs = [_matrix(m, where) for m in fr.get("subframe_transform_matrices", [])]
-            if len(subs) != K:
-                raise InputError(f"{where}: expected {K} subframe_transform_matrices, got {len(subs)}")
-            exrs = tuple(Path(f"{base}_sub{k:02d}.exr") for k in range(K))
-            views.append(View(split, int(fr.get("index", i)), f"./{split}/r_{int(fr.get('index', i))}",
-                              _matrix(fr.get("transform_matrix"), where), subs, Path(f"{base}.png"), exrs))
-    if not views:
+    doc = RenderDoc.read(jpath)
+    if not doc.views:
         raise InputError(f"{jpath}: lists no rendered views")
-    _same_size(views, _png_size, lambda v: (v.png,), (w, h))
-    _same_size(views, exr_size, lambda v: v.exrs, (w, h))
-    info = {k: doc[k] for k in ("engine", "samples", "motion_deg", "seed", "frames") if k in doc}
-    return Source("render", root, name, cam, w, h, K, tuple(views), info)
+    h = doc.header
+    w, hgt = int(h["width"]), int(h["height"])
+    _same_size(doc.views, _png_size, lambda v: (v.png,), (w, hgt))
+    _same_size(doc.views, exr_size, lambda v: v.exrs, (w, hgt))
+    info = {k: h[k] for k in ("engine", "samples", "motion_deg", "seed", "frames") if k in h}
+    return Source("render", root, str(h["scene"]), float(h["camera_angle_x"]), w, hgt, doc.subframes, doc.views,
+                  info)
 
 
 # ---------------------------------------------------------------------- per view
@@ -199,7 +137,7 @@ def _resize(plane: np.ndarray, size: int) -> np.ndarray:
     return np.asarray(im.resize((size, size), Image.Resampling.BOX), dtype=np.float32)
 
 
-def _load_view(src_kind: str, view: View, resolution: int | None):
+def _load_view(src_kind: str, view: ViewRecord, resolution: int | None):
     """(radiance [K, H, W] float32, ground-truth RGBA uint8 [H, W, 4] or None = copy the PNG)."""
     if src_kind == "nerf":
         rgba = read_png(view.png)
@@ -234,34 +172,36 @@ def _load_view(src_kind: str, view: View, resolution: int | None):
     return np.stack(planes), gt
 
 
-def convert_view(task: dict) -> str:
-    """Make one view's ``r_N.png`` and ``r_N.dat`` (skipped if both exist at the right size and,
-    in a finished folder, still hold the bytes its manifest records)."""
-    out: Path = task["out"]
-    view: View = task["view"]
-    dat = out / (view.file_path[2:] + ".dat")
-    png = out / (view.file_path[2:] + ".png")
-    if dat.is_file() and png.is_file() and dat.stat().st_size == task["dat_bytes"] and _as_recorded(task, png, dat):
-        return "skipped"
-    x, gt = _load_view(task["kind"], view, task["resolution"])
-    seed = view_seed(task["seed"], task["name"], view.split, view.index, task["intensity"])
-    spikes = simulate(x, task["intensity"], task["sensor"], frames=task["frames"], seed=seed,
-                      threads=task.get("threads", 1))
-    if gt is None:
-        with atomic_path(png) as tmp:
-            shutil.copyfile(view.png, tmp)
-    else:
-        write_png(png, gt)
-    write_dat(dat, spikes)
-    return "written"
+def convert_view(task: ConvertTask, sensor: Sensor) -> list[str]:
+    """Make one view's ``r_N.png`` and ``r_N.dat`` at every intensity of ``task`` ("written" or
+    "skipped" for each: skipped if both exist at the right size and, in a finished folder, still
+    hold the bytes its manifest records). The source is read once, and only if something is due."""
+    view = task.view
+    due = [lv for lv in task.levels if not _is_done(task, lv)]
+    if due:
+        x, gt = _load_view(task.source_kind, view, task.resolution)
+    for lv in due:
+        seed = view_seed(task.seed, task.name, view.split, view.index, lv.intensity)
+        spikes = simulate(x, lv.intensity, sensor, frames=task.frames, seed=seed, threads=task.threads)
+        png = lv.out / (view.name + ".png")
+        if gt is None:
+            with atomic_path(png) as tmp:
+                shutil.copyfile(view.png, tmp)
+        else:
+            write_png(png, gt)
+        write_dat(lv.out / (view.name + ".dat"), spikes)
+    return ["written" if lv in due else "skipped" for lv in task.levels]
 
 
-def _as_recorded(task: dict, *paths: Path) -> bool:
-    """False if the manifest of a finished folder records other bytes for one of ``paths``: a
-    file changed after the dataset was finished is made again (from its seed, so the same bytes)."""
-    recorded = task.get("recorded") or {}
-    for p in paths:
-        digest = recorded.get(p.relative_to(task["out"]).as_posix())
+def _is_done(task: ConvertTask, lv: LevelOutput) -> bool:
+    """Both files there, the ``.dat`` of the right size, and (in a finished folder) the bytes its
+    manifest records: a file changed after the dataset was finished is made again (from its seed,
+    so the same bytes)."""
+    dat, png = lv.out / (task.view.name + ".dat"), lv.out / (task.view.name + ".png")
+    if not (dat.is_file() and png.is_file() and dat.stat().st_size == task.dat_bytes):
+        return False
+    for p in (png, dat):
+        digest = lv.recorded.get(p.relative_to(lv.out).as_posix())
         if digest is not None and sha256_file(p) != digest:
             return False
     return True
@@ -270,120 +210,110 @@ def _as_recorded(task: dict, *paths: Path) -> bool:
 def _recorded(out: Path) -> dict:
     """{relative path: sha256} listed by ``out/manifest.json`` ({} if the folder is not finished)."""
     mpath = out / "manifest.json"
-    entries = _read_json(mpath).get("files") if mpath.is_file() else None
-    if not isinstance(entries, list):
+    if not mpath.is_file():
         return {}
-    return {e["path"]: e["sha256"] for e in entries
-            if isinstance(e, dict) and isinstance(e.get("path"), str) and isinstance(e.get("sha256"), str)}
+    try:
+        return Manifest.read(mpath)[0].digests()
+    except InputError:
+        return {}
 
 
 # ---------------------------------------------------------------------- whole dataset
-def _intensity_label(intensity: float) -> str:
-    return str(int(intensity)) if float(intensity).is_integer() else f"{intensity:g}".replace(".", "p")
-
-
-def check_intensity(value) -> float:
-    try:
-        i = float(value)
-    except (TypeError, ValueError):
-        raise InputError(f"--intensity {value!r}: expected a number") from None
-    if not math.isfinite(i) or i <= 0:
-        raise InputError(f"--intensity {value!r}: must be a positive number (16, 32, 64 in the paper)")
-    if i > MAX_INTENSITY:
-        raise InputError(f"--intensity {value!r}: above {MAX_INTENSITY:g} every pixel saturates; not a useful setting")
-    return i
-
-
 def convert(source, out_dir, intensities, sensor="paper", frames: int = 256, seed: int = 0,
             resolution: int | None = None, workers: int = 1, scheduler: str | None = None,
-            progress: bool = True) -> list[Path]:
-    """Write ``out_dir/<name>_i<I>/`` for each intensity; returns the folders."""
+            progress: bool = True, stop=None) -> list[Path]:
+    """Write ``out_dir/<name>_i<I>/`` for each intensity; returns the folders.
+
+    One pass over the source: every view is read once and simulated at every intensity.
+    ``stop``: a callable checked between views (in-process runs); when it returns True the
+    conversion stops with an :class:`OutputError`, finished views kept, and a rerun finishes it."""
     src = source if isinstance(source, Source) else open_source(source)
     levels = [check_intensity(i) for i in intensities]
     if not levels:
         raise InputError("give at least one --intensity")
-    if int(frames) != frames or frames < 1:
-        raise InputError(f"--frames must be a positive integer, got {frames}")
-    if resolution is not None and (int(resolution) != resolution or resolution < 8):
-        raise InputError(f"--resolution must be an integer >= 8, got {resolution}")
-    width = height = resolution if resolution else None
-    width, height = width or src.width, height or src.height
-    if (width * height) % 8:
-        raise InputError(f"{width}x{height}: spike files need width*height to be a multiple of 8")
+    width, height = _output_size(src, frames, resolution)
     sensor_obj = sensor if isinstance(sensor, Sensor) else get_sensor(sensor, height, width, seed)
     sensor_obj = sensor_obj.sized(height, width)
     sensor_name = sensor if isinstance(sensor, str) else sensor_obj.name
     if int(workers) != workers or workers < 1:
         raise InputError(f"--workers must be a positive integer, got {workers}")
     client = connect(scheduler) if isinstance(scheduler, str) else scheduler  # fail before writing anything
+    base = ConvertParams(src.root.resolve().name, src.kind, src.name, 0.0, sensor_name, int(frames), src.subframes,
+                         width, height, int(seed), render=src.info)
+    params = [replace(base, intensity=level) for level in levels]
+    outs = [Path(out_dir) / f"{src.name}_i{intensity_label(p.intensity)}" for p in params]
     try:
-        return [_convert_level(src, out_dir, level, sensor_name, sensor_obj, frames, seed, resolution, width,
-                               height, workers, client, progress) for level in levels]
+        for out, p in zip(outs, params):
+            _claim(out, p)
+        tasks = _tasks(src, outs, params, resolution, workers == 1 and client is None)
+        run_tasks(convert_view, tasks, workers=workers, scheduler=client, progress=progress,
+                  desc=f"{src.name} x{len(levels)} intensities", shared={"sensor": sensor_obj}, stop=stop)
+        for out, p in zip(outs, params):
+            _finish(out, src, p, sensor_obj)
     finally:
         if client is not None and isinstance(scheduler, str):
             client.close()
+    return outs
 
 
-def _convert_level(src, out_dir, level, sensor_name, sensor_obj, frames, seed, resolution, width, height,
-                   workers, client, progress) -> Path:
-    out = Path(out_dir) / f"{src.name}_i{_intensity_label(level)}"
-    params = {"source": src.root.resolve().name, "source_kind": src.kind, "name": src.name,
-              "intensity": level, "sensor": sensor_name, "frames": int(frames), "subframes": src.subframes,
-              "width": width, "height": height, "seed": int(seed), "readout_hz": READOUT_HZ,
-              "render": src.info}
-    _claim(out, params)
-    recorded = _recorded(out)
-    tasks = [{"out": out, "view": v, "kind": src.kind, "resolution": resolution, "seed": int(seed),
-              "name": src.name, "intensity": level, "frames": int(frames),
-              "dat_bytes": int(frames) * width * height // 8,
-              "recorded": {k: recorded[k] for k in (v.file_path[2:] + ".png", v.file_path[2:] + ".dat")
-                           if k in recorded},
-              "threads": (os.cpu_count() or 1) if workers == 1 and client is None else 1} for v in src.views]
-    run_tasks(convert_view, tasks, workers=workers, scheduler=client, progress=progress,
-              desc=f"{out.name}", shared={"sensor": sensor_obj})
-    _finish(out, src, params, sensor_obj)
-    return out
+def _output_size(src: Source, frames, resolution) -> tuple[int, int]:
+    if int(frames) != frames or frames < 1:
+        raise InputError(f"--frames must be a positive integer, got {frames}")
+    if resolution is not None and (int(resolution) != resolution or resolution < 8):
+        raise InputError(f"--resolution must be an integer >= 8, got {resolution}")
+    width, height = (resolution, resolution) if resolution else (src.width, src.height)
+    if (width * height) % 8:
+        raise InputError(f"{width}x{height}: spike files need width*height to be a multiple of 8")
+    return width, height
 
 
-def _claim(out: Path, params: dict) -> None:
+def _tasks(src: Source, outs, params, resolution, in_process: bool) -> list[ConvertTask]:
+    recorded = [_recorded(out) for out in outs]
+    p0 = params[0]
+    tasks = []
+    for v in src.views:
+        names = (v.name + ".png", v.name + ".dat")
+        levels = tuple(LevelOutput(out, p.intensity, {k: rec[k] for k in names if k in rec})
+                       for out, p, rec in zip(outs, params, recorded))
+        tasks.append(ConvertTask(v, src.kind, src.name, resolution, p0.seed, p0.frames,
+                                 p0.spike_block().dat_bytes, levels, (os.cpu_count() or 1) if in_process else 1))
+    return tasks
+
+
+def _claim(out: Path, params: ConvertParams) -> None:
     """Refuse to write into a folder that holds another job's output; record this job."""
     manifest, job = out / "manifest.json", out / JOB_FILE
     for path in (manifest, job):
         if path.is_file():
             try:
-                old = json.loads(path.read_text()).get("parameters")
-            except (OSError, ValueError, AttributeError):
+                old = read_json(path).get("parameters")
+            except InputError:
                 old = None
-            if old != json.loads(json.dumps(params)):
+            if not params.matches(old):
                 raise OutputError(f"{out}: holds a dataset made with other parameters ({path.name}); "
                                   f"choose another --out or remove it")
             return
     if out.exists() and any(not p.name.endswith(".part") for p in out.iterdir()):
         raise OutputError(f"{out}: exists and is not a spikegen dataset folder; choose another --out")
-    write_json_atomic(job, {"parameters": params})
+    write_json_atomic(job, {"parameters": params.to_json()})
 
 
-def _finish(out: Path, src: Source, params: dict, sensor: Sensor) -> None:
+def _finish(out: Path, src: Source, params: ConvertParams, sensor: Sensor) -> None:
+    spike = params.spike_block()
+    dats = []
     for split in SPLITS:
-        views = [v for v in src.views if v.split == split]
-        if not views:
-            continue
-        doc = {"camera_angle_x": src.camera_angle_x,
-               "spike": {"height": params["height"], "width": params["width"], "frames": params["frames"],
-                         "subframes": src.subframes, "intensity": params["intensity"],
-                         "readout_hz": READOUT_HZ, "format": "dat"},
-               "frames": [{"file_path": v.file_path, **v.extra, "transform_matrix": v.transform_matrix,
-                           "spike_path": v.file_path + ".dat", "subframe_transform_matrices": v.subframe_matrices}
-                          for v in views]}
-        write_json_atomic(out / f"transforms_{split}.json", doc)
+        views = tuple(v for v in src.views if v.split == split)
+        if views:
+            write_json_atomic(out / f"transforms_{split}.json", Transforms(src.camera_angle_x, spike, views).to_json())
+            dats += [v.name + ".dat" for v in views]
     save_sensor(sensor, out / "sensor")
+    write_bytes_atomic(out / CONFIG_YAML, spikecv_config(spike, dats).encode())
     remove_stale_parts(out, recursive=True)  # temporaries of writes killed in an earlier run
     files = sorted(p for p in out.rglob("*") if p.is_file() and not p.name.startswith(".")
                    and p.name != "manifest.json")
-    entries = [{"path": p.relative_to(out).as_posix(), "bytes": p.stat().st_size, "sha256": sha256_file(p)}
-               for p in files]
-    write_json_atomic(out / "manifest.json", {"generator": f"spikegen {__version__}", "parameters": params,
-                                              "seed": params["seed"], "files": entries})
+    entries = tuple(FileEntry(p.relative_to(out).as_posix(), p.stat().st_size, sha256_file(p)) for p in files)
+    manifest = Manifest(f"spikegen {__version__}", params.to_json(), params.seed, entries)
+    write_json_atomic(out / "manifest.json", manifest.to_json())
     (out / JOB_FILE).unlink(missing_ok=True)
 
 
@@ -395,31 +325,28 @@ def verify(folder) -> list[str]:
     mpath = out / "manifest.json"
     if not mpath.is_file():
         raise InputError(f"{out}: no manifest.json (not a finished spikegen dataset)")
-    doc = _read_json(mpath)
-    entries = doc.get("files")
-    if not isinstance(entries, list):
-        raise InputError(f"{mpath}: no 'files' list")
-    problems, listed = [], set()
-    for e in entries:
-        if isinstance(e, dict) and isinstance(e.get("path"), str):
-            listed.add(e["path"])  # a malformed entry still names its file: not "unlisted" too
-        try:
-            rel, size, digest = e["path"], int(e["bytes"]), e["sha256"]
-        except (KeyError, TypeError, ValueError):
-            problems.append(f"{mpath}: malformed entry {e!r}")
-            continue
-        listed.add(rel)
-        p = out / rel
-        if not p.is_file():
-            problems.append(f"missing: {rel}")
-        elif p.stat().st_size < size:
-            problems.append(f"truncated: {rel} ({p.stat().st_size} of {size} bytes)")
-        elif p.stat().st_size != size:
-            problems.append(f"altered: {rel} ({p.stat().st_size} bytes, manifest says {size})")
-        elif sha256_file(p) != digest:
-            problems.append(f"altered: {rel} (sha256 differs)")
+    manifest, bad = Manifest.read(mpath)
+    problems = [f"{mpath}: malformed entry {e!r}" for e in bad]
+    listed = {e["path"] for e in bad if isinstance(e, dict) and isinstance(e.get("path"), str)}
+    for e in manifest.files:
+        listed.add(e.path)
+        problems += _file_problem(out, e)
     for p in sorted(out.rglob("*")):
         rel = p.relative_to(out).as_posix()
         if p.is_file() and rel not in listed and rel != "manifest.json":
             problems.append(f"unlisted: {rel}" + (" (left by an interrupted write)" if p.name.endswith(".part") else ""))
     return problems
+
+
+def _file_problem(out: Path, e: FileEntry) -> list[str]:
+    p = out / e.path
+    if not p.is_file():
+        return [f"missing: {e.path}"]
+    size = p.stat().st_size
+    if size < e.bytes:
+        return [f"truncated: {e.path} ({size} of {e.bytes} bytes)"]
+    if size != e.bytes:
+        return [f"altered: {e.path} ({size} bytes, manifest says {e.bytes})"]
+    if sha256_file(p) != e.sha256:
+        return [f"altered: {e.path} (sha256 differs)"]
+    return []

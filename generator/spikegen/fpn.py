@@ -37,8 +37,14 @@ def _poly_terms(u, v, degree=4):
     return [u ** i * v ** j for i in range(degree + 1) for j in range(degree + 1 - i)]
 
 
-def _robust_sigma(a) -> float:
+def robust_sd(a) -> float:
+    """Standard deviation estimated from the median absolute deviation (1.4826 MAD: exact for a
+    normal distribution, unmoved by outliers such as dust and hot pixels); non-finite values are
+    ignored, NaN if none is left."""
     a = np.asarray(a, dtype=np.float64).ravel()
+    a = a[np.isfinite(a)]
+    if a.size == 0:
+        return float("nan")
     return float(1.4826 * np.median(np.abs(a - np.median(a))))
 
 
@@ -74,7 +80,7 @@ def fit_map_model(responsivity: np.ndarray, dark_lux: np.ndarray) -> dict:
     for _ in range(4):  # robust: ignore dust and hot outliers in the smooth fit
         coef, *_ = np.linalg.lstsq(A[keep], logr[keep], rcond=None)
         res = logr - A @ coef
-        keep = np.abs(res) < 4 * _robust_sigma(res)
+        keep = np.abs(res) < 4 * robust_sd(res)
     res = res.reshape(H, W)
     col = np.median(res, axis=0)
     res = res - col[None, :]
@@ -91,7 +97,7 @@ def fit_map_model(responsivity: np.ndarray, dark_lux: np.ndarray) -> dict:
         "vignette_coefficients": [float(c) for c in coef],
         "column_sigma": float(np.std(col)),
         "row_sigma": float(np.std(row)),
-        "pixel_sigma_robust": _robust_sigma(pix),
+        "pixel_sigma_robust": robust_sd(pix),
         "pixel_quantiles": [float(q) for q in np.quantile(pix, probs)],
         "dark_log_quantiles": [float(q) for q in np.quantile(log_dark[~hot], probs)],
         "dark_pixel_rho": rho,

@@ -9,18 +9,24 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from functools import partial
 from typing import Callable, Iterable
 
-from .errors import InputError
+from .errors import InputError, OutputError
+
+
+class Stopped(OutputError):
+    """A run asked to stop (``stop``) before its last task."""
 
 
 def run_tasks(fn: Callable, tasks: Iterable, workers: int = 1, scheduler=None,
-              progress: bool = True, desc: str = "views", shared: dict | None = None) -> list:
+              progress: bool = True, desc: str = "views", shared: dict | None = None, stop=None) -> list:
     """Apply ``fn`` to every task; results in task order. Shows a tqdm bar when ``progress``
     (and stderr is a terminal).
 
     ``scheduler``: a Dask scheduler address or a connected ``distributed.Client`` (see
-    :func:`connect`). ``shared``: entries common to every task (e.g. a sensor with its maps),
-    merged into each task dict where it runs; on Dask they are sent to the workers once.
+    :func:`connect`). ``shared``: keyword arguments common to every task (e.g. a sensor with its
+    maps), passed as ``fn(task, **shared)`` where it runs; on Dask they are sent to the workers once.
     On the first failing task the tasks not yet started are cancelled and its error raised.
+    ``stop``: a callable checked before each task of an in-process run; when it returns True the
+    run ends with :class:`Stopped` (tasks already finished keep what they wrote).
     """
     tasks = list(tasks)
     if workers < 1:
@@ -37,6 +43,8 @@ def run_tasks(fn: Callable, tasks: Iterable, workers: int = 1, scheduler=None,
         if workers == 1 or len(tasks) <= 1:
             out = []
             for t in tasks:
+                if stop is not None and stop():
+                    raise Stopped("stopped before the end; finished views are kept, rerun to finish")
                 out.append(call(t))
                 bar.update(1)
             return out
@@ -45,8 +53,8 @@ def run_tasks(fn: Callable, tasks: Iterable, workers: int = 1, scheduler=None,
         bar.close()
 
 
-def _with_shared(fn: Callable, task: dict, shared: dict | None = None):
-    return fn({**task, **shared} if shared else task)
+def _with_shared(fn: Callable, task, shared: dict | None = None):
+    return fn(task, **shared) if shared else fn(task)
 
 
 def _run_pool(call, tasks, workers, bar):

@@ -67,6 +67,17 @@ def get_sensor(spec: str, height: int, width: int, seed: int = 0) -> Sensor:
     raise InputError(f"unknown sensor {spec!r}: expected one of {', '.join(PRESETS)} or a sensor .json file")
 
 
+def sensor_problem(spec: str) -> str | None:
+    """Why ``spec`` names no sensor (``None`` if it names a preset or an existing sensor file);
+    cheap: no maps are loaded."""
+    spec = str(spec)
+    if spec in PRESETS or Path(spec).is_file():
+        return None
+    if spec.endswith(".json"):
+        return f"{spec}: no such sensor file"
+    return f"unknown sensor {spec!r}: expected one of {', '.join(PRESETS)} or a sensor .json file"
+
+
 def _load(path: Path, height: int, width: int, seed: int) -> Sensor:
     from .sensorfile import load_sensor
 

@@ -2,7 +2,7 @@
 
 A render folder ``<out>/<scene>_render/`` holds, per view, ``<split>/r_N_subKK.exr`` (K linear
 RGBA sub-frames while the camera moves) and ``<split>/r_N.png`` (sharp RGBA at mid-exposure),
-plus ``render.json`` (the format :func:`spikegen.dataset.convert` reads)::
+plus ``render.json`` (:class:`spikegen.formats.RenderDoc`, which :func:`spikegen.dataset.convert` reads)::
 
     {"format": "spikegen-render/1", "scene": ..., "camera_angle_x": ..., "width": ..., "height": ...,
      "subframes": K, "frames": T, "motion_deg": ..., "engine": ..., "samples": ..., "seed": ...,
@@ -19,71 +19,48 @@ without freezing Blender, and the command line can show a progress bar.
 """
 from __future__ import annotations
 
-import json
 import shutil
 import zlib
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from .camera import CAMERA_ANGLE_X, DEFAULT_MOTION_DEG, SPLITS, View, make_rig
+from .camera import make_rig
 from .errors import InputError, OutputError
+from .formats import QUICK, SPLITS, RenderDoc, RenderJob, ViewRecord, intensity_problem, read_json
 from .spikeio import atomic_path, remove_stale_parts, sha256_file, write_json_atomic
 
-RENDER_FORMAT = "spikegen-render/1"
-QUICK = {"resolution": 100, "views": (20, 4, 8)}  # --quick: a small dataset in well under 5 minutes
-HEADER_KEYS = ("format", "scene", "camera_angle_x", "width", "height", "subframes", "frames", "motion_deg",
-               "engine", "samples", "png_samples", "denoise", "seed", "views", "source")
+__all__ = ["QUICK", "RenderJob", "RenderFolder", "check_job", "check_export", "render_steps", "convert_all"]
 
 
-@dataclass(frozen=True)
-class RenderJob:
-    """Everything that decides a render folder's bytes."""
-
-    scene: str
-    width: int = 400
-    height: int = 400
-    views: tuple = (100, 100, 200)  # train, val, test
-    subframes: int = 16
-    frames: int = 256
-    motion_deg: float = DEFAULT_MOTION_DEG
-    engine: str = "cycles"
-    samples: int = 8  # chosen by measurement: docs/rendering.md
-    png_samples: int = 16
-    seed: int = 0
-    camera_angle_x: float = CAMERA_ANGLE_X
-    source: str = "builtin"  # "builtin", or "blend:<sha256>"
-    denoise: bool = False  # OpenImageDenoise on each image (docs/rendering.md)
-
-    @property
-    def png_render_samples(self) -> int:
-        """Samples of the ground-truth PNG: ``png_samples``, never fewer than the sub-frames'."""
-        return max(self.png_samples, self.samples)
-
-    def header(self) -> dict:
-        """render.json without its views."""
-        d = asdict(self)
-        d["views"] = dict(zip(SPLITS, (int(v) for v in self.views)))
-        d["png_samples"] = self.png_render_samples
-        return {"format": RENDER_FORMAT, **{k: d[k] for k in HEADER_KEYS if k in d}}
-
-    def rig(self) -> dict[str, list[View]]:
-        return make_rig(dict(zip(SPLITS, self.views)), self.subframes, self.motion_deg, self.seed)
+def rig_of(job: RenderJob) -> dict[str, list[ViewRecord]]:
+    """The job's views: ``{"train": [ViewRecord], "val": [...], "test": [...]}``."""
+    return make_rig(job.view_counts, job.subframes, job.motion_deg, job.seed)
 
 
 def check_job(job: RenderJob) -> None:
-    """One clear line for each kind of bad setting."""
-    if job.width < 8 or job.height < 8 or (job.width * job.height) % 8:
-        raise InputError(f"--resolution {job.width}x{job.height}: need at least 8 and width*height a multiple of 8")
-    if len(job.views) != 3 or any(int(v) < 0 for v in job.views) or sum(job.views) == 0:
-        raise InputError(f"--views {job.views}: expected three counts train,val,test (>= 0, not all 0)")
-    if job.subframes < 1 or job.frames < 1:
-        raise InputError("--subframes and --frames must be at least 1")
-    if job.engine not in ("cycles", "workbench"):
-        raise InputError(f"--engine {job.engine!r}: expected cycles or workbench")
-    if job.samples < 1:
-        raise InputError(f"--samples {job.samples}: must be at least 1")
+    """The first of :meth:`RenderJob.validate`'s messages as an :class:`InputError`."""
+    msgs = job.validate()
+    if msgs:
+        raise InputError(msgs[0])
+
+
+def check_export(job: RenderJob, intensities, sensor: str, seed: int) -> list[str]:
+    """Everything wrong with an export (render, then convert) before anything is rendered: the
+    job, every intensity and the sensor. Shared by ``spikegen render`` and the add-on."""
+    from .presets import get_sensor
+
+    msgs = list(job.validate())
+    levels = [t for t in intensities]
+    if not levels:
+        msgs.append("give at least one --intensity")
+    msgs += [m for m in (intensity_problem(i) for i in levels) if m]
+    try:
+        get_sensor(sensor, job.height, job.width, seed)
+    except InputError as exc:
+        msgs.append(str(exc))
+    return msgs
 
 
 def parse_views(text: str) -> tuple:
@@ -119,17 +96,10 @@ def render_folder(out_dir, scene: str) -> Path:
     return Path(out_dir) / f"{scene}_render"
 
 
-def view_paths(folder: Path, view: View) -> tuple[Path, list[Path]]:
+def view_paths(folder: Path, view: ViewRecord) -> tuple[Path, list[Path]]:
     """(PNG path, K EXR paths) of one view."""
-    base = folder / view.split / f"r_{view.index}"
-    K = len(view.subframe_poses)
-    return Path(f"{base}.png"), [Path(f"{base}_sub{k:02d}.exr") for k in range(K)]
-
-
-def view_entry(view: View) -> dict:
-    return {"index": view.index, "file_path": f"./{view.split}/r_{view.index}",
-            "transform_matrix": view.pose.tolist(),
-            "subframe_transform_matrices": [p.tolist() for p in view.subframe_poses]}
+    placed = ViewRecord(view.split, view.index, view.pose, view.subframe_poses, folder)
+    return placed.png, list(placed.exrs)
 
 
 @dataclass
@@ -138,7 +108,7 @@ class RenderFolder:
 
     path: Path
     job: RenderJob
-    done: dict = field(default_factory=dict)  # split -> {index: entry}
+    done: dict = field(default_factory=dict)  # split -> {index: ViewRecord}
 
     @classmethod
     def open(cls, out_dir, job: RenderJob) -> "RenderFolder":
@@ -155,41 +125,40 @@ class RenderFolder:
 
     def _resume(self, doc_path: Path) -> None:
         try:
-            doc = json.loads(doc_path.read_text())
-        except (OSError, ValueError) as exc:
-            raise OutputError(f"{doc_path}: unreadable ({exc}); remove the folder to start again") from None
-        old = {k: doc.get(k) for k in HEADER_KEYS}
-        new = json.loads(json.dumps(self.job.header()))
-        if old != {k: new.get(k) for k in HEADER_KEYS}:
-            diff = [k for k in HEADER_KEYS if old.get(k) != new.get(k)]
+            doc = read_json(doc_path)
+        except InputError as exc:
+            raise OutputError(f"{exc}; remove the folder to start again") from None
+        diff = self.job.differences(doc)
+        if diff:
             raise OutputError(f"{self.path}: was rendered with other settings ({', '.join(diff)}); "
                               f"choose another --out or remove it")
-        rig = self.job.rig()
+        rig = rig_of(self.job)
+        splits = doc.get("splits") if isinstance(doc.get("splits"), dict) else {}
         for split in SPLITS:
-            for entry in doc.get("splits", {}).get(split, []):
-                i = int(entry["index"])
-                if i < len(rig[split]) and self.is_complete(rig[split][i]):
-                    self.done[split][i] = entry
+            for entry in splits.get(split, []) if isinstance(splits.get(split), list) else []:
+                i = entry.get("index") if isinstance(entry, dict) else None
+                if isinstance(i, int) and 0 <= i < len(rig[split]) and self.is_complete(rig[split][i]):
+                    self.done[split][i] = rig[split][i]
 
-    def is_complete(self, view: View) -> bool:
+    def is_complete(self, view: ViewRecord) -> bool:
         png, exrs = view_paths(self.path, view)
         return png.is_file() and all(p.is_file() for p in exrs)
 
-    def pending(self) -> list[View]:
+    def pending(self) -> list[ViewRecord]:
         """Views still to render, in split and index order."""
-        rig = self.job.rig()
+        rig = rig_of(self.job)
         return [v for s in SPLITS for v in rig[s] if v.index not in self.done[s]]
 
-    def record(self, view: View) -> None:
+    def record(self, view: ViewRecord) -> None:
         """Add a finished view to render.json (rewritten atomically, entries sorted)."""
-        self.done[view.split][view.index] = view_entry(view)
+        self.done[view.split][view.index] = view
         self.write_json()
 
     def write_json(self) -> None:
-        splits = {s: [self.done[s][i] for i in sorted(self.done[s])] for s in SPLITS}
-        write_json_atomic(self.path / "render.json", {**self.job.header(), "splits": splits})
+        views = {s: [self.done[s][i] for i in sorted(self.done[s])] for s in SPLITS}
+        write_json_atomic(self.path / "render.json", RenderDoc.to_json(self.job, views))
 
-    def discard(self, view: View) -> None:
+    def discard(self, view: ViewRecord) -> None:
         """Remove whatever an interrupted view left (its files are not in render.json)."""
         png, exrs = view_paths(self.path, view)
         for p in [png, *exrs]:
@@ -201,7 +170,7 @@ class RenderFolder:
         return not self.pending()
 
 
-def render_view_steps(folder: RenderFolder, renderer, view: View):
+def render_view_steps(folder: RenderFolder, renderer, view: ViewRecord):
     """Render one view, yielding after each image (K EXRs, then the PNG); records it at the end.
 
     A sub-frame whose pose equals the one before it (a static camera, ``--motion 0``) is a copy
@@ -242,11 +211,12 @@ def images_per_view(job: RenderJob) -> int:
 
 
 def convert_all(folder: RenderFolder, out_dir, intensities, sensor="paper", seed: int = 0, workers: int = 1,
-                scheduler=None, progress: bool = True) -> list[Path]:
-    """Spike datasets ``<out_dir>/<scene>_i<I>/`` from a finished render folder, one per intensity."""
+                scheduler=None, progress: bool = True, stop=None) -> list[Path]:
+    """Spike datasets ``<out_dir>/<scene>_i<I>/`` from a finished render folder, one per intensity,
+    in one pass over the renders (see :func:`spikegen.dataset.convert`, which also explains ``stop``)."""
     from .dataset import convert
 
     if not folder.complete():
         raise OutputError(f"{folder.path}: {len(folder.pending())} views are not rendered yet")
     return convert(folder.path, out_dir, list(intensities), sensor=sensor, frames=folder.job.frames, seed=seed,
-                   workers=workers, scheduler=scheduler, progress=progress)
+                   workers=workers, scheduler=scheduler, progress=progress, stop=stop)

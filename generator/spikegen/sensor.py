@@ -39,6 +39,9 @@ MU_EXACT_POISSON = 30.0  # below this mean photo-electron count per frame, Poiss
 NORMAL_BITS = 16  # shot noise: a standard normal quantised to 2**16 equiprobable values
 RESETS = ("subtract", "zero")
 KINDS = ("if", "rsir")
+# The sensor's scalar parameters, in the order sensor.json lists them (maps and map model apart).
+SCALAR_FIELDS = ("name", "kind", "electrons", "reset", "refractory_frames", "flicker_period_frames",
+                 "flicker_depth", "crosstalk_fraction", "gamma", "lux_to_rate", "camera_seed")
 
 
 @dataclass(frozen=True, eq=False)
@@ -128,13 +131,8 @@ class Sensor:
         return self.reset == "subtract" and self.refractory_frames == 0
 
     def parameters(self) -> dict:
-        """Scalar parameters (no maps), as written to ``sensor.json``."""
-        return {
-            "name": self.name, "kind": self.kind, "electrons": self.electrons, "reset": self.reset,
-            "refractory_frames": self.refractory_frames, "flicker_period_frames": self.flicker_period_frames,
-            "flicker_depth": self.flicker_depth, "crosstalk_fraction": self.crosstalk_fraction,
-            "gamma": self.gamma, "lux_to_rate": self.lux_to_rate, "camera_seed": self.camera_seed,
-        }
+        """Scalar parameters (no maps), as written to ``sensor.json``: :data:`SCALAR_FIELDS` in order."""
+        return {k: getattr(self, k) for k in SCALAR_FIELDS}
 
 
 # ---------------------------------------------------------------------- time: sub-frames -> frames

@@ -19,12 +19,10 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
-from .sensor import Sensor
+from .sensor import SCALAR_FIELDS, Sensor
 from .spikeio import atomic_path, write_json_atomic
 
 FORMAT = "spikegen-sensor/1"
-_FIELDS = ("name", "kind", "electrons", "reset", "refractory_frames", "flicker_period_frames", "flicker_depth",
-           "crosstalk_fraction", "gamma", "lux_to_rate", "camera_seed")
 
 
 def _prefix(prefix) -> Path:
@@ -63,7 +61,7 @@ def load_sensor(path) -> Sensor:
         raise InputError(f"{path}: not a readable sensor JSON ({exc})") from None
     if not isinstance(doc, dict) or doc.get("format") != FORMAT or not isinstance(doc.get("parameters"), dict):
         raise InputError(f"{path}: not a spikegen sensor file (expected \"format\": \"{FORMAT}\")")
-    params = {k: v for k, v in doc["parameters"].items() if k in _FIELDS}
+    params = {k: v for k, v in doc["parameters"].items() if k in SCALAR_FIELDS}
     maps = {}
     if doc.get("maps"):
         npz = path.parent / doc["maps"]

@@ -185,14 +185,18 @@ def read_npz(path) -> np.ndarray:
 
 
 def read_spikes(path, size: tuple[int, int] | None = None, frames: int | None = None) -> np.ndarray:
-    """Read a spike stream from ``.dat`` (needs ``size`` = (W, H)), ``.npz`` or ``.npy``."""
+    """Read a spike stream from ``.dat`` (needs ``size`` = (W, H)), ``.npz`` or ``.npy``.
+
+    A ``.dat`` has no header, so its size comes from ``size`` or, when that is not given, from a
+    ``config.yaml`` in its folder or the folder above (the dataset folder's, SpikeCV's keys
+    ``spike_h`` / ``spike_w``); a ``size`` that disagrees with that file is refused, since a
+    stream read at the wrong width decodes without error into sheared nonsense."""
     path = Path(path)
     if not path.is_file():
         raise InputError(f"{path}: no such file")
     ext = path.suffix.lower()
     if ext == ".dat":
-        if size is None:
-            raise InputError(f"{path}: a .dat file has no header; give its size with --size WxH")
+        size = _dat_size(path, size)
         return read_dat(path, size[1], size[0], frames=frames)
     if ext == ".npz":
         out = read_npz(path)
@@ -208,6 +212,23 @@ def read_spikes(path, size: tuple[int, int] | None = None, frames: int | None = 
     if frames is not None and out.shape[0] != frames:
         raise InputError(f"{path}: holds {out.shape[0]} frames, expected {frames}")
     return out
+
+
+def _dat_size(path: Path, size: tuple[int, int] | None) -> tuple[int, int]:
+    """The (W, H) to read a ``.dat`` at: ``size``, checked against a ``config.yaml`` beside it."""
+    from .formats import read_spikecv_size
+
+    for cfg in (path.parent / "config.yaml", path.parent.parent / "config.yaml"):
+        declared = read_spikecv_size(cfg) if cfg.is_file() else None
+        if declared is None:
+            continue
+        if size is not None and tuple(size) != declared:
+            raise InputError(f"{path}: --size {size[0]}x{size[1]}, but {cfg} says the streams are "
+                             f"{declared[0]}x{declared[1]}")
+        return declared
+    if size is None:
+        raise InputError(f"{path}: a .dat file has no header; give its size with --size WxH")
+    return tuple(size)
 
 
 def write_spikes(path, spikes: np.ndarray) -> None:

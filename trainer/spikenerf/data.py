@@ -10,131 +10,103 @@ A training *image* is one pose plus one target per pixel:
 """
 from __future__ import annotations
 
-import json
 import math
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 
-from spikegen.errors import InputError
 from spikegen import spikeio
+from spikegen.errors import InputError
+from spikegen.formats import SpikeBlock, Transforms, ViewRecord, focal_px
 
 HOLDOUT_EVERY = 8  # without a test split, train views 0, 8, 16, ... are held out
 
 
 @dataclass
-class View:
-    """One view of a split: mid-exposure pose, K sub-frame poses, its files."""
-
-    name: str  # e.g. "train/r_0"
-    pose: np.ndarray  # [4, 4] camera-to-world, mid-exposure
-    subposes: np.ndarray  # [K, 4, 4]
-    png: Path
-    spikes: Path | None
-
-
-@dataclass
 class Dataset:
+    """A spike dataset folder as the trainer sees it: the train split's spike block, and the
+    views of each split (:class:`spikegen.formats.ViewRecord`, ``root`` = the folder)."""
+
     root: Path
-    height: int
-    width: int
-    frames: int
-    subframes: int
-    intensity: float
+    spike: SpikeBlock
     camera_angle_x: float
-    splits: dict = field(default_factory=dict)  # split -> list[View]
+    splits: dict = field(default_factory=dict)  # split -> list[ViewRecord]
     holdout: bool = False  # test views taken from train (every 8th)
+
+    height = property(lambda self: self.spike.height)
+    width = property(lambda self: self.spike.width)
+    frames = property(lambda self: self.spike.frames)
+    subframes = property(lambda self: self.spike.subframes)
+    intensity = property(lambda self: self.spike.intensity)
 
     @property
     def focal_px(self) -> float:
-        return 0.5 * self.width / math.tan(0.5 * self.camera_angle_x)
-
-
-def _read_json(path: Path) -> dict:
-    try:
-        return json.loads(path.read_text())
-    except OSError as exc:
-        raise InputError(f"{path}: cannot read ({exc.strerror or exc})") from None
-    except json.JSONDecodeError as exc:
-        raise InputError(f"{path}: not valid JSON ({exc.msg}, line {exc.lineno})") from None
-
-
-def _views(root: Path, meta: dict, source: Path) -> list[View]:
-    out = []
-    for i, fr in enumerate(meta.get("frames", [])):
-        try:
-            rel = fr["file_path"]
-            pose = np.asarray(fr["transform_matrix"], dtype=np.float64)
-        except (KeyError, TypeError):
-            raise InputError(f"{source}: frame {i} lacks file_path/transform_matrix") from None
-        if pose.shape != (4, 4):
-            raise InputError(f"{source}: frame {i} transform_matrix is not 4x4")
-        sub = np.asarray(fr.get("subframe_transform_matrices") or [pose], dtype=np.float64)
-        if sub.ndim != 3 or sub.shape[1:] != (4, 4):
-            raise InputError(f"{source}: frame {i} subframe_transform_matrices must be K x 4 x 4")
-        png = (root / (rel + ".png")).resolve()
-        spk = fr.get("spike_path")
-        out.append(View(rel.lstrip("./"), pose, sub, png, (root / spk).resolve() if spk else None))
-    return out
+        return focal_px(self.width, self.camera_angle_x)
 
 
 def load_dataset(root) -> Dataset:
-    """Read ``transforms_*.json`` of a dataset folder; an ``InputError`` if it is not one."""
+    """Read and check ``transforms_*.json`` of a dataset folder (poses finite and rigid, sizes and
+    field of view positive, spike files of the size the spike block says); an ``InputError`` naming
+    the file and the frame if it is not a sound spike dataset."""
     root = Path(root)
-    if not root.is_dir():
-        raise InputError(f"{root}: not a folder (expected a dataset folder with transforms_train.json)")
     train_json = root / "transforms_train.json"
     if not train_json.is_file():
-        raise InputError(f"{root}: not a spike dataset (no transforms_train.json; see dataset.md)")
-    meta = _read_json(train_json)
-    spike = meta.get("spike")
-    if not isinstance(spike, dict):
-        raise InputError(f"{train_json}: no \"spike\" block: a NeRF-synthetic folder, not a spike dataset "
-                         "(make one with `spikegen convert`)")
-    try:
-        ds = Dataset(root=root, height=int(spike["height"]), width=int(spike["width"]),
-                     frames=int(spike["frames"]), subframes=int(spike.get("subframes", 1)),
-                     intensity=float(spike["intensity"]), camera_angle_x=float(meta["camera_angle_x"]))
-    except (KeyError, TypeError, ValueError) as exc:
-        raise InputError(f"{train_json}: spike block or camera_angle_x incomplete ({exc})") from None
-    if spike.get("format", "dat") != "dat":
-        raise InputError(f"{train_json}: spike format {spike.get('format')!r} not supported (expected dat)")
-    ds.splits["train"] = _views(root, meta, train_json)
+        why = ("not a spike dataset (no transforms_train.json; see dataset.md)" if root.is_dir()
+               else "not a folder (expected a dataset folder with transforms_train.json)")
+        raise InputError(f"{root}: {why}")
+    train = Transforms.read(train_json, "train")
+    ds = Dataset(root, train.spike, train.camera_angle_x, {"train": list(train.frames)})
     for split in ("val", "test"):
         p = root / f"transforms_{split}.json"
         if p.is_file():
-            ds.splits[split] = _views(root, _read_json(p), p)
+            doc = Transforms.read(p, split)
+            if (doc.spike.width, doc.spike.height, doc.spike.frames) != (ds.width, ds.height, ds.frames):
+                raise InputError(f"{p}: spike block says {doc.spike.frames} frames of {doc.spike.width}x"
+                                 f"{doc.spike.height}, the train split {ds.frames} of {ds.width}x{ds.height}")
+            ds.splits[split] = list(doc.frames)
     if not ds.splits.get("test"):
-        train = ds.splits["train"]
-        ds.splits["test"] = [v for i, v in enumerate(train) if i % HOLDOUT_EVERY == 0]
-        ds.splits["train"] = [v for i, v in enumerate(train) if i % HOLDOUT_EVERY != 0]
+        views = ds.splits["train"]
+        ds.splits["test"] = [v for i, v in enumerate(views) if i % HOLDOUT_EVERY == 0]
+        ds.splits["train"] = [v for i, v in enumerate(views) if i % HOLDOUT_EVERY != 0]
         ds.holdout = True
     if not ds.splits["train"]:
         raise InputError(f"{train_json}: no training views")
     return ds
 
 
-def load_sensor_maps(ds: Dataset) -> tuple[np.ndarray, np.ndarray, str]:
-    """(R [H, W], d [H, W] float32, sensor kind) from the dataset's sensor.json; ideal if absent."""
+@dataclass(frozen=True)
+class SensorMaps:
+    """What the trainer's differentiable sensor needs from the dataset's ``sensor.json``."""
+
+    resp: np.ndarray  # R [H, W] float32
+    dark: np.ndarray  # d [H, W] float32, spikes per frame
+    kind: str = "if"  # "if" or "rsir"
+    electrons: float = 0.0  # photo-electrons per threshold (0 = no shot noise)
+    reset: str = "subtract"  # "subtract" or "zero"
+
+
+def load_sensor_maps(ds: Dataset) -> SensorMaps:
+    """The dataset's sensor at the dataset's size; the ideal sensor if it has no sensor.json."""
     path = ds.root / "sensor.json"
     if not path.is_file():
-        return (np.ones((ds.height, ds.width), np.float32), np.zeros((ds.height, ds.width), np.float32), "if")
+        return SensorMaps(np.ones((ds.height, ds.width), np.float32), np.zeros((ds.height, ds.width), np.float32))
     from spikegen.sensorfile import load_sensor
 
     sensor = load_sensor(path)
     resp, dark = sensor.maps(ds.height, ds.width)
-    return resp.astype(np.float32), dark.astype(np.float32), sensor.kind
+    return SensorMaps(resp.astype(np.float32), dark.astype(np.float32), sensor.kind, float(sensor.electrons),
+                      sensor.reset)
 
 
-def read_view_spikes(ds: Dataset, view: View) -> np.ndarray:
+def read_view_spikes(ds: Dataset, view: ViewRecord) -> np.ndarray:
     """``uint8 [T, H, W]`` spikes of a view."""
     if view.spikes is None:
         raise InputError(f"{ds.root}: view {view.name} has no spike_path")
     return spikeio.read_spikes(view.spikes, size=(ds.width, ds.height), frames=ds.frames)
 
 
-def ground_truth(view: View, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
+def ground_truth(view: ViewRecord, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
     """(linear luminance on white [H, W], alpha [H, W]) of a view's PNG, area-resized if needed."""
     x, alpha = spikeio.png_to_radiance(spikeio.read_png(view.png))
     if x.shape != (height, width):
@@ -165,7 +137,3 @@ def interpolate_pose(subposes: np.ndarray, frame: float, frames: int) -> np.ndar
     out[:3, :3] = u @ vt  # nearest rotation to the blended matrix
     out[3] = (0, 0, 0, 1)
     return out
-
-
-def is_static(view: View, tol: float = 1e-6) -> bool:
-    return bool(np.abs(view.subposes - view.subposes[:1]).max() <= tol)

@@ -13,7 +13,7 @@ from tqdm import tqdm
 
 from spikegen import recon
 
-from .data import Dataset, area_resize, interpolate_pose, is_static, load_sensor_maps, read_view_spikes
+from .data import Dataset, area_resize, interpolate_pose, load_sensor_maps, read_view_spikes
 from .methods import Method
 
 
@@ -28,6 +28,8 @@ class Targets:
     width: int
     kind: str  # "counts" | "radiance"
     sensor_kind: str = "if"  # the dataset's sensor: "if" or "rsir"
+    electrons: float = 0.0  # the dataset sensor's photo-electrons per threshold (0 = no shot noise)
+    reset: str = "subtract"  # the dataset sensor's reset: "subtract" or "zero"
 
 
 def window_bounds(frames: int, windows: int) -> list[tuple[int, int]]:
@@ -45,10 +47,10 @@ def view_images(ds: Dataset, view, method: Method, height: int, width: int):
     spikes = read_view_spikes(ds, view)
     T = ds.frames
     if method.target == "counts":
-        n_win = 1 if is_static(view) else method.windows
+        n_win = 1 if view.is_static() else method.windows
         out = []
         for a, b in window_bounds(T, n_win):
-            pose = view.pose if n_win == 1 else interpolate_pose(view.subposes, 0.5 * (a + b), T)
+            pose = view.pose if n_win == 1 else interpolate_pose(view.subframe_poses, 0.5 * (a + b), T)
             counts = spikes[a:b].sum(axis=0, dtype=np.int32).astype(np.float32)
             out.append((pose, _resize(counts, height, width), float(b - a)))
         return out
@@ -65,10 +67,12 @@ def build_targets(ds: Dataset, method: Method, height: int, width: int, progress
             poses.append(pose)
             values.append(value.reshape(-1))
             frames.append(n)
-    resp, dark, sensor_kind = load_sensor_maps(ds)
+    sensor = load_sensor_maps(ds)
+    resp, dark = sensor.resp, sensor.dark
     if not method.use_resp:
         resp = np.ones_like(resp)
     return Targets(np.asarray(poses, np.float32), np.asarray(values, np.float32), np.asarray(frames, np.float32),
                    _resize(resp, height, width).reshape(-1).astype(np.float32),
                    _resize(dark, height, width).reshape(-1).astype(np.float32), height, width,
-                   "counts" if method.target == "counts" else "radiance", sensor_kind)
+                   "counts" if method.target == "counts" else "radiance", sensor.kind, sensor.electrons,
+                   sensor.reset)
