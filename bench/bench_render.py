@@ -1,7 +1,7 @@
 """Rendering speed and the choice of the default Cycles samples (docs/rendering.md).
 
     python bench/bench_render.py speed  [--scenes lego,mic] [--views 2] [--resolution 400] [--samples N] [--denoise 0/1]
-                                        [--crop 1/0] [--motion DEG]
+                                        [--crop 1/0] [--motion DEG] [--device cpu|gpu]
     python bench/bench_render.py noise  [--scenes ...] [--samples 1,2,4,8,16] [--reference 512]
                                         [--subframes 16] [--motion 1.0] [--resolution 200] [--denoise 1,2,4]
 
@@ -53,38 +53,54 @@ def radiance(path: Path) -> tuple[np.ndarray, np.ndarray]:
 
 
 def speed(scenes, views: int, resolution: int, samples: int | None = None, denoise: bool | None = None,
-          crop: bool = True, motion_deg: float = cm.DEFAULT_MOTION_DEG) -> None:
+          crop: bool = True, motion_deg: float = cm.DEFAULT_MOTION_DEG, device: str = "cpu") -> None:
+    """``device`` gpu: each scene on the CPU and on the GPU side by side (one run, same views)."""
+    from spikegen.render_blender import resolve_device
+
     given = {"samples": samples, "denoise": denoise}
     base = RenderJob("x", width=resolution, height=resolution, views=(views, 0, 0), motion_deg=motion_deg,
                      **{k: v for k, v in given.items() if v is not None})
+    devices = ["cpu"] + ([resolve_device("gpu")] if device == "gpu" else [])
     print(f"# seconds per view: {base.subframes} sub-frames (EXR) + 1 PNG at {resolution} x {resolution}, "
           f"samples {base.samples} (PNG {base.png_render_samples}), denoise {base.denoise}, motion {motion_deg} deg, "
-          f"{views} views per scene, {'the box around the object' if crop else 'every pixel'} rendered")
+          f"{views} views per scene, {'the box around the object' if crop else 'every pixel'} rendered, "
+          f"devices {', '.join(devices)}")
     print(f"# load average before: {os.getloadavg()[0]:.2f} on {os.cpu_count()} cores")
-    print(f"{'scene':<10} {'build s':>8} {'s/view':>8} {'cpu s/view':>11} {'s/image':>8} {'box area':>9}")
-    all_times = []
+    print(f"{'scene':<10} {'device':<11} {'build s':>8} {'s/view':>8} {'cpu s/view':>11} {'s/image':>8} "
+          f"{'box area':>9}")
+    all_times = {d: [] for d in devices}
     with tempfile.TemporaryDirectory() as tmp:
         for name in scenes:
-            job = dataclasses.replace(base, scene=name)
-            t0 = time.perf_counter()
-            r = builtin_renderer(name, RenderSettings.for_job(job))
-            if not crop:
-                r.crop_points = None
-            build = time.perf_counter() - t0
-            folder = RenderFolder.open(tmp, job)
-            t0, c0 = time.perf_counter(), time.process_time()
-            for _ in render_steps(folder, r):  # the path `spikegen render` takes
-                pass
-            per_view = (time.perf_counter() - t0) / views
-            cpu = (time.process_time() - c0) / views
-            all_times.append((per_view, cpu))
-            full = (0, resolution, 0, resolution)
-            boxes = [r.crop_box(p) or full for v in rig_of(job)["train"] for p in v.subframe_poses]
-            area = np.mean([(b[1] - b[0]) * (b[3] - b[2]) for b in boxes]) / resolution ** 2
-            print(f"{name:<10} {build:8.2f} {per_view:8.2f} {cpu:11.2f} {per_view / (job.subframes + 1):8.3f} "
-                  f"{area:9.2f}", flush=True)
-    mean = np.mean(all_times, axis=0)
-    print(f"{'mean':<10} {'':>8} {mean[0]:8.2f} {mean[1]:11.2f}")
+            for d in devices:
+                job = dataclasses.replace(base, scene=name, device=d)
+                build, per_view, cpu, area = _time_scene(job, crop, Path(tmp) / d)
+                all_times[d].append((per_view, cpu))
+                print(f"{name:<10} {d:<11} {build:8.2f} {per_view:8.2f} {cpu:11.2f} "
+                      f"{per_view / (job.subframes + 1):8.3f} {area:9.2f}", flush=True)
+    for d in devices:
+        mean = np.mean(all_times[d], axis=0)
+        print(f"{'mean':<10} {d:<11} {'':>8} {mean[0]:8.2f} {mean[1]:11.2f}")
+    print(f"# load average after: {os.getloadavg()[0]:.2f}")
+
+
+def _time_scene(job, crop: bool, tmp: Path):
+    """(build s, wall s per view, CPU s per view, mean box area) of rendering ``job``'s train views."""
+    t0 = time.perf_counter()
+    r = builtin_renderer(job.scene, RenderSettings.for_job(job))
+    if not crop:
+        r.crop_points = None
+    build = time.perf_counter() - t0
+    folder = RenderFolder.open(tmp, job)
+    views = job.views[0]
+    t0, c0 = time.perf_counter(), time.process_time()
+    for _ in render_steps(folder, r):  # the path `spikegen render` takes
+        pass
+    per_view = (time.perf_counter() - t0) / views
+    cpu = (time.process_time() - c0) / views
+    full = (0, job.width, 0, job.height)
+    boxes = [r.crop_box(p) or full for v in rig_of(job)["train"] for p in v.subframe_poses]
+    area = np.mean([(b[1] - b[0]) * (b[3] - b[2]) for b in boxes]) / (job.width * job.height)
+    return build, per_view, cpu, area
 
 
 def spike_noise(x_ref: np.ndarray, mask: np.ndarray, window: int, intensity: float = 64.0,
@@ -150,17 +166,24 @@ def main() -> None:
                     "default for built-in scenes), 0 every pixel")
     ap.add_argument("--subframes", type=int, default=16, help="noise: sub-frames averaged (1 = one static frame)")
     ap.add_argument("--motion", type=float, default=cm.DEFAULT_MOTION_DEG, help="camera motion (deg)")
+    ap.add_argument("--device", choices=["cpu", "gpu"], default="cpu", help="speed: gpu also times every scene on "
+                    "the first GPU backend Cycles finds, next to the CPU (an error without one)")
     a = ap.parse_args()
     a.samples_given = a.samples is not None
     a.samples = a.samples or "1,2,4,8,16"
     scenes = [s for s in a.scenes.split(",") if s]
     if a.what == "speed":
         speed(scenes, a.views, a.resolution or 400, int(a.samples) if a.samples_given else None,
-              None if a.denoise is None else bool(int(a.denoise)), bool(a.crop), a.motion)
+              None if a.denoise is None else bool(int(a.denoise)), bool(a.crop), a.motion, a.device)
     else:
         noise(scenes, [int(s) for s in a.samples.split(",")], a.reference, a.resolution or 200, a.subframes,
               a.motion, [int(s) for s in a.denoise.split(",")] if a.denoise else [])
 
 
 if __name__ == "__main__":
-    main()
+    from spikegen.errors import SpikegenError
+
+    try:
+        main()
+    except SpikegenError as exc:
+        raise SystemExit(f"bench_render: {exc}") from None

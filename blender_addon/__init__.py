@@ -15,7 +15,7 @@ from __future__ import annotations
 import threading
 
 import bpy
-from bpy.props import BoolProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
+from bpy.props import BoolProperty, EnumProperty, FloatProperty, IntProperty, PointerProperty, StringProperty
 
 from spikegen.errors import SpikegenError
 from spikegen.formats import RenderJob  # the project's wheel, installed with the extension (no bpy)
@@ -25,6 +25,11 @@ DEFAULTS = {"intensities": "16,32,64", "resolution": _JOB.width, "views_train": 
             "views_val": _JOB.views[1], "views_test": _JOB.views[2], "subframes": _JOB.subframes,
             "frames": _JOB.frames, "motion_deg": _JOB.motion_deg, "samples": _JOB.samples, "denoise": _JOB.denoise,
             "seed": _JOB.seed}
+
+
+DEVICES = (("PREFERENCES", "As in Preferences", "The compute device your Blender preferences select"),
+           ("CPU", "CPU", "Render on the CPU"),
+           ("GPU", "GPU", "The first GPU backend found (OptiX, CUDA, HIP, Metal, oneAPI); refused without one"))
 
 
 def _properties():
@@ -49,6 +54,8 @@ def _properties():
                                  description="ideal, paper, rsir, calibrated, or a sensor .json path"),
         "dataset_name": StringProperty(name="Name", default="",
                                        description="Dataset name (default: the .blend file's or the scene's name)"),
+        "device": EnumProperty(name="Device", default="PREFERENCES", items=DEVICES,
+                               description="Where Cycles renders (recorded in render.json; GPU and CPU bytes differ)"),
     }
 
 
@@ -71,15 +78,19 @@ def parse_intensities(text: str) -> list:
 
 def job_from(props, scene, camera, identify: bool = True) -> RenderJob:
     """The render job of these settings: the same record `spikegen render` builds. ``identify``:
-    hash the saved .blend to name the dataset (skipped for checks, which do not need the name)."""
-    from spikegen.render_blender import camera_angle_x
+    hash the saved .blend to name the dataset and ask Cycles for the device (skipped for the
+    panel's checks, which need neither)."""
+    from spikegen.render_blender import camera_angle_x, preferences_device, resolve_device
 
     name, source = _dataset_name(props, scene) if identify else ("scene", "scene")
+    device = "cpu"
+    if identify and props.device != "CPU":
+        device = preferences_device() if props.device == "PREFERENCES" else resolve_device("gpu")
     res = props.resolution
     return RenderJob(name, res, res, (props.views_train, props.views_val, props.views_test), props.subframes,
                      props.frames, props.motion_deg, "cycles", props.samples,
                      RenderJob.png_samples,  # as the CLI: the job raises it to `samples` if need be
-                     props.seed, camera_angle_x(camera, res, res), source, props.denoise)
+                     props.seed, camera_angle_x(camera, res, res), source, props.denoise, device)
 
 
 def validate(props, context, full: bool = False) -> list[str]:
@@ -96,8 +107,8 @@ def validate(props, context, full: bool = False) -> list[str]:
     if camera is None:
         return msgs + ["the scene has no active camera"]
     try:
-        job = job_from(props, context.scene, camera, identify=False)
-    except SpikegenError as exc:  # a camera the dataset cannot describe
+        job = job_from(props, context.scene, camera, identify=full)
+    except SpikegenError as exc:  # a camera the dataset cannot describe, a GPU asked for where there is none
         return msgs + [str(exc)]
     levels = parse_intensities(props.intensities)
     if full:

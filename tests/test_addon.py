@@ -57,6 +57,10 @@ def test_export_writes_valid_datasets_and_restores_the_scene(addon, tmp_path):
     scene.render.engine, scene.render.resolution_x = "BLENDER_EEVEE", 123
     assert bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), **SMALL) == {"FINISHED"}
     assert scene.render.engine == "BLENDER_EEVEE" and scene.render.resolution_x == 123  # user settings restored
+    prefs = bpy.context.preferences.addons["cycles"].preferences
+    expected = prefs.compute_device_type if prefs.get_num_gpu_devices() and prefs.has_active_device() else None
+    device = json.loads((tmp_path / "scene_render" / "render.json").read_text())["device"]
+    assert device == ("cpu" if expected in (None, "NONE") else f"gpu:{expected}")  # as the preferences select
     for level in (16, 32):
         out = tmp_path / f"scene_i{level}"
         assert verify(out) == []
@@ -86,6 +90,9 @@ def test_errors_are_reported_and_cancelled(addon, tmp_path):
         bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), sensor="papr", **SMALL)
     with pytest.raises(RuntimeError, match="/nonexistent/cam.json: no such sensor file"):
         bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), sensor="/nonexistent/cam.json", **SMALL)
+    if not bpy.context.preferences.addons["cycles"].preferences.get_num_gpu_devices():
+        with pytest.raises(RuntimeError, match="--device gpu: Cycles finds no GPU backend"):
+            bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), device="GPU", **SMALL)
     bpy.context.scene.camera = None
     with pytest.raises(RuntimeError, match="no active camera"):
         bpy.ops.export_scene.spike_dataset(directory=str(tmp_path), **SMALL)
@@ -110,7 +117,7 @@ def test_cancel_leaves_no_partial_view(addon, tmp_path):
 
 
 def _props(tmp_path):
-    return SimpleNamespace(directory=str(tmp_path), sensor="paper", dataset_name="", motion_deg=1.0, denoise=False,
+    return SimpleNamespace(directory=str(tmp_path), sensor="paper", dataset_name="", motion_deg=1.0, denoise=False, device="PREFERENCES",
                            **SMALL)
 
 

@@ -137,3 +137,23 @@ def test_the_export_check_names_every_problem_before_rendering():
     assert any("--samples 0" in m for m in msgs) and any("above 4096" in m for m in msgs)
     assert any("'x': expected a number" in m for m in msgs) and any("unknown sensor 'papr'" in m for m in msgs)
     assert check_export(JOB, [16], "ideal", 0) == []
+
+
+def test_the_device_is_recorded_and_a_folder_is_not_finished_on_another(tmp_path):
+    gpu = RenderJob("stand", 16, 16, (2, 0, 0), subframes=2, frames=32, samples=1, device="gpu:CUDA")
+    _run(tmp_path, gpu, stop_after=4)
+    assert json.loads((tmp_path / "stand_render" / "render.json").read_text())["device"] == "gpu:CUDA"
+    cpu = RenderJob("stand", 16, 16, (2, 0, 0), subframes=2, frames=32, samples=1)
+    with pytest.raises(OutputError, match=r"other settings \(device\)"):
+        RenderFolder.open(tmp_path, cpu)
+    assert RenderFolder.open(tmp_path, gpu).pending()[0].index == 1
+
+
+def test_a_render_json_from_before_the_device_key_resumes_as_a_cpu_render(tmp_path):
+    folder = _run(tmp_path, stop_after=4)
+    doc = json.loads((folder.path / "render.json").read_text())
+    del doc["device"]
+    (folder.path / "render.json").write_text(json.dumps(doc))
+    assert [v.index for v in RenderFolder.open(tmp_path, JOB).pending()][:1] == [1]
+    with pytest.raises(OutputError, match="device"):
+        RenderFolder.open(tmp_path, RenderJob(**{**JOB.__dict__, "device": "gpu:OPTIX"}))

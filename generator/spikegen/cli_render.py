@@ -44,8 +44,13 @@ from .scenes import SCENES
 @click.option("--workers", type=int, default=1, show_default=True, help="Local worker processes for conversion.")
 @click.option("--scheduler", default=None, help="Dask scheduler address for conversion.")
 @click.option("--quick", is_flag=True, help="Small and fast: 100 x 100, views 20,4,8 (unless given).")
+@click.option("--device", type=click.Choice(["auto", "cpu", "gpu"]), default="auto", show_default=True,
+              help="Cycles device: auto = the first GPU backend found (OptiX, CUDA, HIP, Metal, oneAPI), else the "
+                   "CPU; gpu = refuse to run without one. Recorded in render.json; GPU and CPU bytes differ.")
+@click.option("--gpu-index", type=click.IntRange(min=0), default=None,
+              help="Render on this one GPU of the backend (e.g. one per process on a multi-GPU machine).")
 def render(scene, intensities, out_dir, resolution, views, subframes, frames, motion_deg, samples, png_samples,
-           denoise, engine, blend, sensor, seed, workers, scheduler, quick):
+           denoise, engine, blend, sensor, seed, workers, scheduler, quick, device, gpu_index):
     """Render a scene through Blender and write <out>/<scene>_i<I>/ for each intensity."""
     name, source = _scene_name(scene, blend)
     res = resolution or (QUICK["resolution"] if quick else 400)
@@ -58,19 +63,32 @@ def render(scene, intensities, out_dir, resolution, views, subframes, frames, mo
     if msgs:
         raise InputError(msgs[0])
     levels = [float(i) for i in intensities]
+    job = _with_device(job, device, gpu_index)
     client = None
     if scheduler is not None:  # connect before rendering: a bad address fails in seconds, not hours
         from .parallel import connect
 
         client = connect(scheduler)
     try:
-        folder = run_render(job, out_dir, blend)
+        folder = run_render(job, out_dir, blend, gpu_index)
         for f in convert_all(folder, out_dir, levels, sensor=sensor, seed=seed, workers=workers, scheduler=client,
                              progress=True):
             click.echo(str(f))
     finally:
         if client is not None:
             client.close()
+
+
+def _with_device(job: RenderJob, device: str, gpu_index) -> RenderJob:
+    """The job with its Cycles device resolved (before anything is rendered)."""
+    if job.engine != "cycles":
+        return job
+    from .render_blender import resolve_device
+
+    resolved = resolve_device(device, log=lambda m: click.echo(m, err=True))
+    if gpu_index is not None and resolved == "cpu":
+        raise InputError("--gpu-index: rendering on the CPU (no GPU backend found); leave it out or use --device gpu")
+    return dataclasses.replace(job, device=resolved)
 
 
 def _scene_name(scene, blend) -> tuple[str, str]:
@@ -88,7 +106,7 @@ def _scene_name(scene, blend) -> tuple[str, str]:
     return scene, "builtin"
 
 
-def run_render(job: RenderJob, out_dir, blend=None) -> RenderFolder:
+def run_render(job: RenderJob, out_dir, blend=None, gpu_index: int | None = None) -> RenderFolder:
     """Render every missing view of ``job`` into ``<out_dir>/<scene>_render`` with a progress bar.
 
     Ctrl-C (or SIGTERM) stops after the image being rendered: that view's files are removed,
@@ -100,13 +118,13 @@ def run_render(job: RenderJob, out_dir, blend=None) -> RenderFolder:
 
     renderer = None
     if blend is not None:  # the camera's field of view is part of the job, known once the file is open
-        renderer = renderer_for(job, blend)
+        renderer = renderer_for(job, blend, gpu_index=gpu_index)
         job = dataclasses.replace(job, camera_angle_x=renderer.camera_angle_x())
     folder = RenderFolder.open(out_dir, job)
     pending = folder.pending()
     if not pending:
         return folder
-    renderer = renderer or renderer_for(job, blend)
+    renderer = renderer or renderer_for(job, blend, gpu_index=gpu_index)
     steps = render_steps(folder, renderer)
     with StopRequest() as stop, tqdm(total=len(pending) * images_per_view(job), desc=f"render {job.scene}",
                                      unit="img") as bar:

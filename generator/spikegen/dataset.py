@@ -119,7 +119,7 @@ def _open_render(root: Path) -> Source:
     w, hgt = int(h["width"]), int(h["height"])
     _same_size(doc.views, _png_size, lambda v: (v.png,), (w, hgt))
     _same_size(doc.views, exr_size, lambda v: v.exrs, (w, hgt))
-    info = {k: h[k] for k in ("engine", "samples", "motion_deg", "seed", "frames") if k in h}
+    info = {k: h[k] for k in ("engine", "samples", "motion_deg", "seed", "frames", "device") if k in h}
     return Source("render", root, str(h["scene"]), float(h["camera_angle_x"]), w, hgt, doc.subframes, doc.views,
                   info)
 

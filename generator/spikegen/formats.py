@@ -223,8 +223,10 @@ class ViewRecord:
 
 # ---------------------------------------------------------------------- the render job
 HEADER_KEYS = ("format", "scene", "camera_angle_x", "width", "height", "subframes", "frames", "motion_deg",
-               "engine", "samples", "png_samples", "denoise", "seed", "views", "source")
+               "engine", "samples", "png_samples", "denoise", "seed", "views", "source", "device")
 ENGINES = ("cycles", "workbench")
+GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "METAL", "ONEAPI")  # Cycles' GPU backends, in order of preference
+HEADER_DEFAULTS = {"device": "cpu"}  # what a render.json written before a key existed meant by its absence
 
 
 @dataclass(frozen=True)
@@ -245,6 +247,7 @@ class RenderJob:
     camera_angle_x: float = CAMERA_ANGLE_X
     source: str = "builtin"  # "builtin", "scene" (the add-on's open scene), or "blend:<sha256>"
     denoise: bool = False  # OpenImageDenoise on each image (docs/rendering.md)
+    device: str = "cpu"  # where Cycles renders: "cpu", or "gpu:<backend>" such as "gpu:OPTIX" (bytes differ)
 
     @property
     def png_render_samples(self) -> int:
@@ -272,6 +275,8 @@ class RenderJob:
             msgs.append(f"--motion {self.motion_deg}: expected degrees between 0 and 90")
         if not (math.isfinite(self.camera_angle_x) and 0 < self.camera_angle_x < math.pi):
             msgs.append(f"camera_angle_x {self.camera_angle_x}: expected a field of view between 0 and pi")
+        if self.device != "cpu" and self.device.partition(":")[2] not in GPU_BACKENDS:
+            msgs.append(f"device {self.device!r}: expected cpu or gpu:<{'|'.join(GPU_BACKENDS)}>")
         return msgs
 
     def header(self) -> dict:
@@ -284,7 +289,7 @@ class RenderJob:
     def differences(self, header: dict) -> list[str]:
         """The header keys in which ``header`` (a render.json) differs from this job's."""
         new = json.loads(json.dumps(self.header()))
-        return [k for k in HEADER_KEYS if header.get(k) != new.get(k)]
+        return [k for k in HEADER_KEYS if header.get(k, HEADER_DEFAULTS.get(k)) != new.get(k)]
 
 
 @dataclass(frozen=True)

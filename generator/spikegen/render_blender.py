@@ -5,7 +5,13 @@
 - :class:`BlenderRenderer` renders one camera pose at a time: a linear OpenEXR sub-frame
   (RGBA, premultiplied, transparent film) or the 8-bit sRGB RGBA ground-truth PNG.
 
-Determinism and speed. Cycles runs on the CPU with a fixed thread count, one tile, a fixed
+Devices. Cycles renders on the CPU, or on one GPU backend (:func:`resolve_device`: OptiX, CUDA,
+HIP, Metal, oneAPI, in that order of preference). A GPU render is not byte-identical to a CPU
+render (different arithmetic); determinism holds per device: the same device and seed give the
+same bytes, and the device is recorded in ``render.json`` so a folder is never finished on
+another one.
+
+Determinism and speed. Cycles runs with a fixed thread count (on the CPU), one tile, a fixed
 seed per view (``use_animated_seed`` off, so all sub-frames of a view share one noise pattern:
 noise that changed between sub-frames would turn into spurious spikes), no denoiser, no
 adaptive sampling, no dithering, and persistent data (the scene is synced once; only the
@@ -27,6 +33,7 @@ import numpy as np
 
 from .camera import CAMERA_ANGLE_X, crop_window
 from .errors import InputError
+from .formats import GPU_BACKENDS
 from .spikeio import atomic_path
 
 ENGINES = {"cycles": "CYCLES", "workbench": "BLENDER_WORKBENCH"}
@@ -54,12 +61,15 @@ class RenderSettings:
     threads: int = 0
     max_bounces: int = 4
     denoise: bool = False  # OpenImageDenoise (fast quality) on every image, sub-frames and PNG
+    device: str = "cpu"  # "cpu" or "gpu:<backend>" (see resolve_device)
+    gpu_index: int | None = None  # render on this one GPU of the backend (None: every one in use)
 
     @classmethod
     def for_job(cls, job, **overrides) -> "RenderSettings":
         """The settings a :class:`~spikegen.render.RenderJob` asks for (``overrides`` replace fields)."""
         return cls(**{"width": job.width, "height": job.height, "engine": job.engine, "samples": job.samples,
-                      "png_samples": job.png_render_samples, "denoise": job.denoise, **overrides})
+                      "png_samples": job.png_render_samples, "denoise": job.denoise, "device": job.device,
+                      **overrides})
 
     def thread_count(self) -> int:
         return self.threads or (os.cpu_count() or 1)
@@ -265,7 +275,9 @@ def configure(scene, settings: RenderSettings) -> None:
 
 def _configure_cycles(scene, settings: RenderSettings) -> None:
     c = scene.cycles
-    c.device = "CPU"
+    c.device = "CPU" if settings.device == "cpu" else "GPU"
+    if settings.device != "cpu":
+        _use_gpu(settings.device.partition(":")[2], settings.gpu_index)
     c.samples = settings.samples
     c.use_layer_samples = "IGNORE"  # a view layer's own sample count would override ours
     c.film_exposure, c.time_limit = 1.0, 0.0  # radiance as rendered; every sample, however long it takes
@@ -285,6 +297,65 @@ def _configure_cycles(scene, settings: RenderSettings) -> None:
     c.use_guiding = False
     c.pixel_filter_type, c.filter_width = "BLACKMAN_HARRIS", 1.5
     c.sample_clamp_indirect = 10.0
+
+
+# ----------------------------------------------------------------------------- devices
+def _cycles_preferences():
+    return _bpy().context.preferences.addons["cycles"].preferences
+
+
+def gpu_devices(backend: str) -> list:
+    """Cycles' device entries of one GPU ``backend`` on this machine (refreshed; [] if none)."""
+    prefs = _cycles_preferences()
+    try:
+        return [d for d in prefs.get_devices_for_type(backend) if d.type == backend]
+    except (TypeError, ValueError, RuntimeError):  # a backend this Blender build does not know
+        return []
+
+
+def resolve_device(request: str, log=None) -> str:
+    """``--device auto|cpu|gpu`` -> ``"cpu"`` or ``"gpu:<backend>"``: the first backend of
+    :data:`~spikegen.formats.GPU_BACKENDS` that has a device. ``auto`` falls back to the CPU with one
+    line to ``log``; ``gpu`` without a backend is an :class:`InputError`."""
+    if request == "cpu":
+        return "cpu"
+    if request not in ("auto", "gpu"):
+        raise InputError(f"--device {request!r}: expected auto, cpu or gpu")
+    for backend in GPU_BACKENDS:
+        if gpu_devices(backend):
+            return f"gpu:{backend}"
+    if request == "gpu":
+        raise InputError("--device gpu: Cycles finds no GPU backend here (OptiX, CUDA, HIP, Metal, oneAPI); "
+                         "use --device cpu or auto")
+    if log is not None:
+        log("no GPU backend found by Cycles (OptiX, CUDA, HIP, Metal, oneAPI): rendering on the CPU")
+    return "cpu"
+
+
+def preferences_device() -> str:
+    """The device the user's own Blender preferences select: their compute backend if it has a
+    device in use, else the CPU."""
+    prefs = _cycles_preferences()
+    backend = prefs.compute_device_type
+    if backend in GPU_BACKENDS and any(d.use for d in gpu_devices(backend)):
+        return f"gpu:{backend}"
+    return "cpu"
+
+
+def _use_gpu(backend: str, index: int | None) -> None:
+    """Point Cycles at ``backend``: GPU ``index`` alone, or (None) the devices the user has in use,
+    or every device of the backend when none is; never the CPU beside it (its bytes would differ)."""
+    prefs = _cycles_preferences()
+    devices = gpu_devices(backend)
+    if not devices:
+        raise InputError(f"device gpu:{backend}: Cycles finds no {backend} device here")
+    if index is not None and not 0 <= index < len(devices):
+        raise InputError(f"--gpu-index {index}: this machine has {len(devices)} {backend} device(s)")
+    prefs.compute_device_type = backend
+    chosen = [devices[index]] if index is not None else [d for d in devices if d.use] or devices
+    ids = {d.id for d in chosen}
+    for d in prefs.devices:
+        d.use = d.id in ids
 
 
 def _configure_workbench(scene) -> None:
@@ -322,6 +393,8 @@ def save_settings(scene, camera) -> dict:
             out[path] = getattr(owner, attr)
     out["stamps"] = {n: getattr(scene.render, n) for n in dir(scene.render) if n.startswith("use_stamp")}
     out["camera"] = (scene.camera, camera.matrix_world.copy(), camera.data.dof.use_dof)
+    prefs = _cycles_preferences()  # a GPU render chooses the compute backend and its devices
+    out["compute"] = (prefs.compute_device_type, {d.id: d.use for d in prefs.devices})
     return out
 
 
@@ -337,6 +410,14 @@ def restore_settings(scene, camera, saved: dict) -> None:
     for name, value in saved["stamps"].items():
         setattr(scene.render, name, value)
     scene.camera, camera.matrix_world, camera.data.dof.use_dof = saved["camera"]
+    prefs = _cycles_preferences()
+    backend, use = saved["compute"]
+    try:
+        prefs.compute_device_type = backend
+    except (TypeError, ValueError):  # "NONE" where this Blender offers no backend at all: nothing was changed
+        pass
+    for d in prefs.devices:
+        d.use = use.get(d.id, d.use)
 
 
 def _owner(scene, path: str):
@@ -495,12 +576,13 @@ def quiet_stdout(enabled: bool = True):
         os.close(devnull)
 
 
-def renderer_for(job, blend=None, quiet: bool = True) -> "BlenderRenderer":
+def renderer_for(job, blend=None, quiet: bool = True, gpu_index: int | None = None) -> "BlenderRenderer":
     """A renderer for ``job``: the built-in scene ``job.scene``, or the user's ``blend`` file."""
+    settings = RenderSettings.for_job(job, gpu_index=gpu_index)
     if blend is None:
-        return builtin_renderer(job.scene, RenderSettings.for_job(job), quiet=quiet)
+        return builtin_renderer(job.scene, settings, quiet=quiet)
     scene, camera = open_blend(blend)
-    return BlenderRenderer(scene, camera, RenderSettings.for_job(job), quiet=quiet)
+    return BlenderRenderer(scene, camera, settings, quiet=quiet)
 
 
 def builtin_renderer(name: str, settings: RenderSettings, quiet: bool = True) -> "BlenderRenderer":
