@@ -9,6 +9,7 @@ among the detected) and to estimate its parameter within 20 %. Clean data: nothi
 from __future__ import annotations
 
 import json
+import pickle
 
 import numpy as np
 import pytest
@@ -153,3 +154,128 @@ def test_sweep_random_pairs():
         except AssertionError as exc:
             failures.append((k, round(intensity), effects, result.detected, str(exc)))
     assert not failures
+
+
+# ---------------------------------------------------------------------- the typed records
+@pytest.fixture(scope="module")
+def flicker_shot_diagnosis():
+    spikes, radiance, intensity, effects = synth.hidden_case(["flicker", "shot_noise"], seed=2, frames=600)
+    return diagnose(spikes, radiance, intensity), effects
+
+
+def test_effect_records_are_the_json_entries(flicker_shot_diagnosis):
+    result, _ = flicker_shot_diagnosis
+    doc = json.loads(json.dumps(result.as_json()))  # what `--json` writes, read back
+    assert [e["name"] for e in doc["effects"]] == [e.name for e in result.effects] == list(synth.EFFECTS)
+    for rec, entry in zip(result.effects, doc["effects"]):
+        assert entry["detected"] is rec.detected
+        assert entry["score"] == pytest.approx(rec.score, abs=1e-6)
+        assert entry["z"] == (pytest.approx(rec.z, abs=1e-6) if np.isfinite(rec.z) else None)
+        assert list(entry["parameters"]) == list(rec.parameters)  # same keys, same order
+        for key, value in rec.parameters.items():
+            assert entry["parameters"][key] == (None if value is None else pytest.approx(value, abs=1e-6))
+        assert entry.get("note", "") == rec.note
+        assert "evidence" not in entry  # the verdict's evidence stays out of the public format
+    flicker = result.effect("flicker")
+    assert flicker.detected and "model_depth_at_period" in flicker.parameters  # added by the readout check
+    assert result.detected == doc["detected"] and set(result.detected) == {"flicker", "shot_noise"}
+
+
+def test_effect_records_are_frozen_and_carry_their_evidence(flicker_shot_diagnosis):
+    import dataclasses
+
+    result, _ = flicker_shot_diagnosis
+    shot = result.effect("shot_noise")
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        shot.detected = False
+    with pytest.raises(TypeError):
+        shot.parameters["electrons"] = 1.0
+    assert pickle.loads(pickle.dumps(shot)) == shot
+    assert shot.evidence["size"] == shot.parameters["electrons"]
+    assert shot.evidence["size_gate"] == 2 * synth.ENVELOPE["shot_noise"]["electrons"]
+    assert shot.z >= shot.evidence["z_gate"]
+    gain = result.effect("gain_nonuniformity")
+    assert gain.parameters["sigma"] == pytest.approx(np.sqrt(max(gain.evidence["variance"], 0.0)))
+    fit = result.fit
+    assert fit.flicker.period_frames == result.effect("flicker").parameters["period_frames"]
+    assert fit.rate.lam_pred.shape == fit.structure.e.shape == (64 * 64,)
+
+
+def test_gates_and_scores_follow_the_envelope():
+    from spikegen.fidelity.records import ENVELOPE_SIZE, GATES, judge
+
+    for name in synth.EFFECTS:
+        key = synth.SIZE_KEY[name]
+        assert ENVELOPE_SIZE[name] == (1.0 if key is None else synth.ENVELOPE[name][key])
+    assert GATES["dark_current"][0] == synth.ENVELOPE["dark_current"]["rate"] / 2
+    assert GATES["hot_pixels"][0] == 2  # half of 5 pixels, a whole number
+    at_envelope = judge("column_pattern", synth.ENVELOPE["column_pattern"]["sigma"], 50.0, {})
+    assert at_envelope.detected and at_envelope.score == pytest.approx(1.0)
+    assert not judge("column_pattern", 0.4 * synth.ENVELOPE["column_pattern"]["sigma"], 50.0, {}).detected
+    assert not judge("column_pattern", 0.05, 1.0, {}).detected  # large but not significant
+    few = judge("shot_noise", 500.0, 50.0, {})  # 500 electrons: 4 x the envelope's variance
+    assert few.detected and few.score == pytest.approx(4.0)
+    assert not judge("shot_noise", 5000.0, 50.0, {}).detected
+
+
+def test_interval_formula_and_its_inverse():
+    from spikegen.fidelity.records import interval_frames, rate_from_interval
+
+    lam = np.array([0.25, 0.5, 1.0, 2.0])
+    # ISI = delta + max(1, 1 / lambda): a rate above one spike per frame saturates at one frame
+    assert np.allclose(interval_frames(lam, 0.5), [4.5, 2.5, 1.5, 1.5])
+    assert np.allclose(rate_from_interval(interval_frames(lam[:3], 1.5), 1.5), lam[:3])
+
+
+def _fake_diagnosis(H=4, W=5, with_e=True):
+    """A hand-made Diagnosis: rate model lambda = 0.1 x radiance, delta = 0.5 frames."""
+    from spikegen.fidelity.diagnose import Diagnosis
+    from spikegen.fidelity.records import Effect, Fit, PixelStructure, RateFit
+    from spikegen.sensor import Sensor
+
+    P = H * W
+    lam = np.linspace(0.05, 0.5, P)
+    rate = RateFit(a=1.2, delta=0.5, lam_pred=lam, isi=1.0 / lam, keep=np.ones(P, bool), outlier=np.zeros(P, bool))
+    structure = PixelStructure(np.zeros(P, bool), np.ones(P, bool), np.zeros(P), 0.01, np.ones(W),
+                               e=np.linspace(0.9, 1.1, P) if with_e else None)
+    effects = [Effect(n, n == "dark_current", 3.0 if n == "dark_current" else 0.0,
+                      {"rate": 0.006} if n == "dark_current" else {}, 7.5, "a note" if n == "crosstalk" else "")
+               for n in synth.EFFECTS]
+    measures = {k: 0.1 for k in ("rate_rel_rmse", "dark_rate_error")}
+    info = {"frames": 100, "fit_frames": 80, "held_out_frames": 20, "height": H, "width": W, "intensity": 64.0,
+            "reference": "1 sub-frame(s)", "baseline_sensor": "ideal"}
+    return Diagnosis(effects, Sensor(), measures, dict(measures), Fit(rate, None, structure), info)
+
+
+def test_report_reads_the_records(tmp_path, monkeypatch):
+    from spikegen.fidelity import report
+    from spikegen.fidelity.records import interval_frames
+
+    result = _fake_diagnosis()
+    md = report.markdown(result)
+    assert "Detected, strongest first: `dark_current`." in md
+    assert "| dark_current | yes | 3 | 7.5 | rate=0.006 |  |" in md
+    assert "| crosstalk | no | 0 | 7.5 |  | a note |" in md
+
+    series = {}
+
+    class Axis:  # records what the plots draw
+        figure = type("F", (), {"colorbar": lambda *a, **k: None})()
+
+        def loglog(self, x, y, *a, label=None, **k):
+            series[label] = np.asarray(y)
+
+        def __getattr__(self, name):
+            return lambda *a, **k: None
+
+    monkeypatch.setattr(report, "save_figure", lambda path, draw, *a, **k: draw(Axis()))
+    radiance = np.linspace(0.1, 1.0, 20).reshape(4, 5)  # increasing: the plot's sort keeps pixel order
+    names = [n for n, _ in report._plots(result, np.zeros((100, 4, 5), np.uint8), radiance, tmp_path)]
+    assert names == ["rates.png", "residual_map.png", "spectrum.png", "isi.png"]
+    lam = result.fit.rate.lam_pred
+    assert np.allclose(series["fitted model"], 1.0 / interval_frames(lam, 0.5))
+    assert np.allclose(series["measured"], lam)
+    no_map = _fake_diagnosis(with_e=False)
+    assert "residual_map.png" not in [n for n, _ in report._plots(no_map, np.zeros((100, 4, 5), np.uint8),
+                                                                    radiance, tmp_path)]
+    assert "rates.png" not in [n for n, _ in report._plots(result, np.zeros((100, 4, 5), np.uint8), "self", tmp_path)]

@@ -30,39 +30,53 @@ def save_figure(path, draw, size=(5.5, 4.0), dpi=110):
 
 
 def _plots(result, spikes, radiance, out: Path) -> list:
-    fit = result.fit
-    T, H, W = spikes.shape
+    """Write the report's PNGs into ``out``; returns ``[(file name, caption)]``."""
     Tf = result.info["fit_frames"]
     names = []
-    if not isinstance(radiance, str) and fit.get("lam_pred") is not None:
-        x = np.asarray(radiance, dtype=np.float64)
-        xm = (x.mean(axis=0) if x.ndim == 3 else x).reshape(-1)
-        rate = 1.0 / fit["isi"]
-        model = 1.0 / (fit["delta"] + 1.0 / np.clip(fit["lam_pred"], 1e-12, 1.0))
-        ideal = np.minimum(result.info["intensity"] / 256.0 * xm, 1.0)
+    if not isinstance(radiance, str) and result.fit.rate.lam_pred is not None:
+        names += _model_plots(result, radiance, out)
+    names.append(_spectrum_plot(spikes[:Tf], out))
+    names.append(_isi_plot(spikes[:Tf], out))
+    return names
 
-        def rate_plot(ax):
-            ax.loglog(xm, rate, ".", ms=2, alpha=0.4, label="measured")
-            o = np.argsort(xm)
-            ax.loglog(xm[o], ideal[o], "k-", lw=1, label="baseline (ideal)")
-            ax.loglog(xm[o], model[o], "r.", ms=1, alpha=0.5, label="fitted model")
-            ax.set_xlabel("reference radiance X")
-            ax.set_ylabel("spikes / frame")
-            ax.legend(fontsize=8)
 
-        save_figure(out / "rates.png", rate_plot)
-        names.append(("rates.png", "Per-pixel rate against radiance: measured, baseline, fitted model."))
-        if fit.get("e") is not None:
-            e = np.where(np.isfinite(fit["e"]), fit["e"], np.nan).reshape(H, W)
+def _model_plots(result, radiance, out: Path) -> list:
+    """Rates against radiance (measured, baseline, fitted model) and the residual map."""
+    rate_fit, structure = result.fit.rate, result.fit.structure
+    x = np.asarray(radiance, dtype=np.float64)
+    xm = (x.mean(axis=0) if x.ndim == 3 else x).reshape(-1)
+    measured = 1.0 / rate_fit.isi
+    model = 1.0 / rate_fit.predicted_isi()
+    ideal = np.minimum(result.info["intensity"] / 256.0 * xm, 1.0)
 
-            def map_plot(ax):
-                im = ax.imshow(e, cmap="coolwarm", vmin=np.nanpercentile(e, 1), vmax=np.nanpercentile(e, 99))
-                ax.figure.colorbar(im, ax=ax, label="measured / model rate")
-                ax.set_title("per-pixel responsivity residual")
+    def rate_plot(ax):
+        ax.loglog(xm, measured, ".", ms=2, alpha=0.4, label="measured")
+        o = np.argsort(xm)
+        ax.loglog(xm[o], ideal[o], "k-", lw=1, label="baseline (ideal)")
+        ax.loglog(xm[o], model[o], "r.", ms=1, alpha=0.5, label="fitted model")
+        ax.set_xlabel("reference radiance X")
+        ax.set_ylabel("spikes / frame")
+        ax.legend(fontsize=8)
 
-            save_figure(out / "residual_map.png", map_plot)
-            names.append(("residual_map.png", "Measured over modelled rate per pixel (gain, columns, hot pixels)."))
-    s = spikes[:Tf].reshape(Tf, -1).sum(axis=1).astype(np.float64)
+    save_figure(out / "rates.png", rate_plot)
+    names = [("rates.png", "Per-pixel rate against radiance: measured, baseline, fitted model.")]
+    if structure.e is not None:
+        e = np.where(np.isfinite(structure.e), structure.e, np.nan).reshape(result.info["height"], result.info["width"])
+
+        def map_plot(ax):
+            im = ax.imshow(e, cmap="coolwarm", vmin=np.nanpercentile(e, 1), vmax=np.nanpercentile(e, 99))
+            ax.figure.colorbar(im, ax=ax, label="measured / model rate")
+            ax.set_title("per-pixel responsivity residual")
+
+        save_figure(out / "residual_map.png", map_plot)
+        names.append(("residual_map.png", "Measured over modelled rate per pixel (gain, columns, hot pixels)."))
+    return names
+
+
+def _spectrum_plot(fit_spikes, out: Path) -> tuple:
+    """Power spectrum of the population signal of ``fit_spikes [Tf, H, W]``."""
+    Tf = fit_spikes.shape[0]
+    s = fit_spikes.reshape(Tf, -1).sum(axis=1).astype(np.float64)
 
     def spectrum_plot(ax):
         p = np.abs(np.fft.rfft(s - s.mean())) ** 2 / Tf
@@ -72,8 +86,12 @@ def _plots(result, spikes, radiance, out: Path) -> list:
         ax.set_ylabel("power of the population signal")
 
     save_figure(out / "spectrum.png", spectrum_plot)
-    names.append(("spectrum.png", "Temporal spectrum of the population signal (flicker shows as a line)."))
-    ps = stats.pixel_stats(spikes[:Tf])
+    return "spectrum.png", "Temporal spectrum of the population signal (flicker shows as a line)."
+
+
+def _isi_plot(fit_spikes, out: Path) -> tuple:
+    """Pooled inter-spike-interval histogram of ``fit_spikes [Tf, H, W]``."""
+    ps = stats.pixel_stats(fit_spikes)
 
     def isi_plot(ax):
         v = ps.isi_values
@@ -83,8 +101,7 @@ def _plots(result, spikes, radiance, out: Path) -> list:
         ax.set_ylabel("count")
 
     save_figure(out / "isi.png", isi_plot)
-    names.append(("isi.png", "Pooled inter-spike-interval histogram of the fit frames."))
-    return names
+    return "isi.png", "Pooled inter-spike-interval histogram of the fit frames."
 
 
 def markdown(result, figures=()) -> str:

@@ -12,6 +12,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..fpn import robust_sd  # noqa: F401  (one robust sigma for the project; fidelity code imports it from here)
+
 MAX_SPAN = 4  # span (in ISIs) of the long-span timing variance, see PixelStats.span_var
 
 
@@ -95,6 +97,15 @@ def pixel_stats(spikes: np.ndarray) -> PixelStats:
     same_m = pix[m:] == pix[:-m]
     span = (t[m:] - t[:-m])[same_m].astype(np.float64)
     _, span_var, _ = _grouped_var(span, pix[m:][same_m], P, 3)
+    isi_min, isi_max = _isi_extremes(isi, isi_pix, P)
+    ones = np.bincount(isi_pix, weights=(isi == 1).astype(np.float64), minlength=P)
+    single = (n_isi >= 3) & (isi_min == isi_max)
+    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi,
+                      diff_var)
+
+
+def _isi_extremes(isi, isi_pix, P):
+    """Shortest and longest interval of each pixel, ``[P]`` each (0 where it has none)."""
     isi_min = np.zeros(P)
     isi_max = np.zeros(P)
     if isi.size:
@@ -104,10 +115,7 @@ def pixel_stats(spikes: np.ndarray) -> PixelStats:
         lasts = np.r_[sp[1:] != sp[:-1], True]
         isi_min[sp[firsts]] = si[firsts]
         isi_max[sp[lasts]] = si[lasts]
-    ones = np.bincount(isi_pix, weights=(isi == 1).astype(np.float64), minlength=P)
-    single = (n_isi >= 3) & (isi_min == isi_max)
-    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi,
-                      diff_var)
+    return isi_min, isi_max
 
 
 def window_rate(spikes: np.ndarray) -> np.ndarray:
@@ -147,16 +155,13 @@ def population_signal(spikes: np.ndarray, mask: np.ndarray) -> np.ndarray:
     return flat[:, np.asarray(mask).reshape(-1)].sum(axis=1, dtype=np.int64).astype(np.float64)
 
 
-@dataclass
+@dataclass(frozen=True)
 class SineFit:
     period_frames: float
     depth: float  # relative modulation of the light: amplitude / light level
     phase: float  # radians, of sin(2 pi t / P + phase)
     z: float  # amplitude over its standard error
     residual_sd: float
-    coherence: float = 1.0  # set by the caller: agreement across pixel groups
-    mask: np.ndarray | None = None  # set by the caller: the pixels of the population signal
-    light: np.ndarray | None = None  # and their expected light spikes per frame
 
 
 def sine_at(signal: np.ndarray, light: np.ndarray, freq: float) -> complex:
@@ -252,14 +257,6 @@ def median3x3(x: np.ndarray) -> np.ndarray:
     H, W = x.shape
     stack = np.stack([p[i:i + H, j:j + W] for i in range(3) for j in range(3)])
     return np.median(stack, axis=0)
-
-
-def robust_sd(a) -> float:
-    a = np.asarray(a, dtype=np.float64)
-    a = a[np.isfinite(a)]
-    if a.size == 0:
-        return float("nan")
-    return float(1.4826 * np.median(np.abs(a - np.median(a))))
 
 
 # ---------------------------------------------------------------------- discrepancy measures

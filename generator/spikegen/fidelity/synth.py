@@ -30,6 +30,17 @@ ENVELOPE = {
     "crosstalk": {"fraction": 0.05},
     "nonlinearity": {"gamma_offset": 0.1},
 }
+# The entry of ENVELOPE that is each effect's size (None: an on/off effect, size 1).
+SIZE_KEY = {"gain_nonuniformity": "sigma", "column_pattern": "sigma", "dark_current": "rate", "hot_pixels": "count",
+            "shot_noise": "electrons", "reset_to_zero": None, "refractory": "frames", "flicker": "depth",
+            "crosstalk": "fraction", "nonlinearity": "gamma_offset"}
+
+
+def envelope_size(name: str) -> float:
+    """The weakest size of effect ``name`` the tools must find (:data:`ENVELOPE`; 1 if on/off)."""
+    key = SIZE_KEY[name]
+    return 1.0 if key is None else float(ENVELOPE[name][key])
+
 
 # Ranges the tests draw from (lower ends = the envelope; upper ends are this project's choice).
 RANGES = {
@@ -122,9 +133,8 @@ def make_sensor(effects: dict, height: int, width: int, rng: np.random.Generator
 
 def true_value(name: str, params: dict):
     """The parameter a diagnosis must estimate for effect ``name`` (None for on/off effects)."""
-    key = {"gain_nonuniformity": "sigma", "column_pattern": "sigma", "dark_current": "rate", "hot_pixels": "count",
-           "shot_noise": "electrons", "refractory": "frames", "flicker": "depth", "crosstalk": "fraction",
-           "nonlinearity": "gamma"}.get(name)
+    # the envelope bounds |gamma - 1|; the generator draws gamma itself
+    key = "gamma" if name == "nonlinearity" else SIZE_KEY.get(name)
     return (key, params[key]) if key else (None, None)
 
 

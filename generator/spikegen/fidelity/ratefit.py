@@ -1,0 +1,261 @@
+"""The fits of ``spikegen diagnose`` (steps 2-3 of diagnose.py): flicker and the mean-rate model.
+
+Each fit takes the :class:`~.records.Context` and the records it depends on, and returns a
+new frozen record.
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from ..sensor import interpolation_weights, neighbour_mean
+from . import stats
+from .records import GATES, MIN_SPIKES, Context, FlickerFit, RateFit, interval_frames
+
+GAMMA_RANGE = (0.25, 4.0)
+DELTA_MAX = 6.0
+
+
+# ---------------------------------------------------------------------- readout evidence
+def constant_interval_fraction(meas: stats.PixelStats) -> float:
+    """Fraction of pixels whose intervals never vary: a noise-free reset-to-zero readout (a
+    subtractive reset alternates between floor and ceil of 1 / lambda unless that is an integer)."""
+    sel = (meas.n_isi >= 5) & (meas.isi_mean > 2.5)
+    return float(meas.single[sel].mean()) if sel.any() else 0.0
+
+
+def self_refractory(meas: stats.PixelStats) -> float:
+    """With the radiance taken from the data, a dead time shows only as missing short intervals."""
+    bright = (meas.rate > 0.3) & (meas.n_isi >= 5)
+    if bright.sum() < 10:
+        return 0.0
+    return float(max(0.0, np.median(meas.isi_min[bright]) - 1.0)) if np.all(meas.ones[bright] == 0) else 0.0
+
+
+# ---------------------------------------------------------------------- the mean-rate model
+def _bases(ctx: Context, gamma: float):
+    """``B0, B1 [P]``: time-mean of X^gamma and of its 4-neighbour contrast over the fit frames."""
+    K, H, W = ctx.X.shape
+    if K == 1:
+        xg = ctx.X[0] ** gamma
+        return xg.reshape(-1), (neighbour_mean(xg) - xg).reshape(-1)
+    ts = np.unique(np.linspace(0, ctx.Tf - 1, min(ctx.Tf, 48)).astype(int))
+    wts = interpolation_weights(K, ctx.frames)[ts]
+    xg = (wts @ ctx.X.reshape(K, -1)).reshape(-1, H, W) ** gamma
+    return xg.mean(0).reshape(-1), (neighbour_mean(xg) - xg).mean(0).reshape(-1)
+
+
+def _design(ctx: Context, fbar: float, gamma: float, use_c: bool) -> np.ndarray:
+    """``[P, 2 or 3]``: the model's rate is linear in ``(a, [a c,] a d)`` for fixed gamma."""
+    B0, B1 = _bases(ctx, gamma)
+    Rb, db = ctx.Rb, ctx.db
+    gf = ctx.g * fbar
+    cols = [Rb * (gf * B0 + db), Rb]
+    if use_c:
+        cols.insert(1, Rb * gf * B1)
+    return np.stack(cols, axis=1)
+
+
+def _solve(A, isi, delta, sqrt_w, keep, want_cov=False, target=None):
+    """Weighted LSQ of ``lambda_obs = 1 / (ISI - delta)`` (or of ``target``) on the design
+    ``A [P, p]``, relative errors weighted by ``w``; returns (theta, cov or None, lam_pred [P])."""
+    if target is None:
+        x = isi - delta
+        ok = keep & (x >= 1.05)
+    else:
+        x = 1.0 / np.maximum(target, 1e-12)
+        ok = keep & (target < 0.95)
+    if ok.sum() < A.shape[1] + 5:
+        return None
+    sw = sqrt_w[ok] * x[ok]  # sqrt(w) / lambda_obs
+    Aw = A[ok] * sw[:, None]
+    bw = sqrt_w[ok]  # lambda_obs * sw
+    M = Aw.T @ Aw
+    try:
+        theta = np.linalg.solve(M, Aw.T @ bw)
+    except np.linalg.LinAlgError:
+        return None
+    cov = None
+    if want_cov:
+        res = bw - Aw @ theta
+        s2 = float(res @ res) / max(ok.sum() - A.shape[1], 1)
+        cov = np.linalg.inv(M) * s2
+    return theta, cov, A @ theta
+
+
+def _solve_censored(A, isi, delta, sqrt_w, keep, want_cov=False):
+    """Noise-free reset-to-zero: ``ISI = n + ceil(1 / lambda)``, so ``1 / lambda`` lies in
+    ``(ISI - n - 1, ISI - n]`` (``delta = n + 1/2``). Alternate: fit, project the prediction
+    into each pixel's interval, refit. Returns (solution, mean squared relative distance)."""
+    lo, hi = np.maximum(isi - delta - 0.5, 1e-9), np.maximum(isi - delta + 0.5, 1.0)
+    target = 1.0 / np.clip(isi - delta, 1.0, None)
+    sol = None
+    for _ in range(5):
+        sol = _solve(A, isi, delta, sqrt_w, keep, want_cov, target=target)
+        if sol is None:
+            return None, math.inf
+        inv = 1.0 / np.clip(sol[2], 1e-12, None)
+        proj = np.clip(inv, lo, hi)
+        target = 1.0 / proj
+    rel = (inv[keep] - proj[keep]) / isi[keep]
+    w = sqrt_w[keep] ** 2
+    return sol, float(np.sum(w * rel * rel) / np.sum(w))
+
+
+def _objective(isi, lam_pred, delta, w, keep):
+    rel = (isi[keep] - interval_frames(lam_pred[keep], delta)) / isi[keep]
+    return float(np.sum(w[keep] * rel * rel) / np.sum(w[keep]))
+
+
+def _gamma_se(f, gamma, obj, n):
+    """Standard error of gamma from the curvature of the (mean squared relative) objective."""
+    h = 1e-3 * gamma
+    curv = (f(gamma + h) - 2 * obj + f(gamma - h)) / h ** 2
+    if not (curv > 0) or n < 10:
+        return math.inf
+    return math.sqrt(2 * obj / (curv * n))
+
+
+@dataclass(frozen=True, eq=False)
+class _RateProblem:
+    """The data of one rate-model fit: measured mean intervals of the usable pixels, weights."""
+
+    ctx: Context
+    fbar: float  # mean flicker factor the design uses
+    use_c: bool  # fit crosstalk (the reference has pixel-scale texture)
+    isi: np.ndarray  # [P] measured mean interval, frames (0 outside base_ok)
+    base_ok: np.ndarray  # [P] pixels with enough spikes (and not clipped at flicker peaks)
+    w: np.ndarray  # [P] weights: intervals counted, at most 200
+    sqrt_w: np.ndarray  # [P]
+
+    @classmethod
+    def build(cls, ctx: Context, flicker: FlickerFit | None, fbar: float) -> "_RateProblem":
+        meas = ctx.meas
+        base_ok = (meas.n >= MIN_SPIKES) & (meas.rate > 0)
+        if flicker is not None and flicker.depth > GATES["flicker"][0]:  # pixels clipped at flicker peaks average below
+            base_ok &= meas.rate * (1.0 + flicker.depth) < 0.9
+        isi = np.where(base_ok, 1.0 / np.maximum(meas.rate, 1e-12), 0.0)
+        w = np.minimum(meas.n - 1, 200).astype(np.float64)
+        B0, B1 = _bases(ctx, 1.0)
+        use_c = float(np.std(B1)) > 0.01 * float(np.mean(B0))
+        return cls(ctx, fbar, use_c, isi, base_ok, w, np.sqrt(np.maximum(w, 0.0)))
+
+    def fit_at(self, delta, gamma, keep, want_cov=False):
+        """``(objective, (theta, cov, lam_pred [P]) or None)`` at fixed ``(delta, gamma)``."""
+        A = _design(self.ctx, self.fbar, gamma, self.use_c)
+        if self.ctx.zero_quantised:
+            sol, obj = _solve_censored(A, self.isi, delta, self.sqrt_w, keep, want_cov)
+            return obj, sol
+        sol = _solve(A, self.isi, delta, self.sqrt_w, keep, want_cov)
+        if sol is None:
+            return math.inf, None
+        return _objective(self.isi, sol[2], delta, self.w, keep), sol
+
+    def best_gamma(self, delta, keep, iters=22) -> float:
+        g = stats.golden_min(lambda gm: self.fit_at(delta, math.exp(gm), keep)[0], *np.log(GAMMA_RANGE), iters=iters)
+        return math.exp(g)
+
+    def coarse_objective(self, delta, keep) -> float:
+        """Objective at ``delta`` with gamma from a coarse search (for grids over delta)."""
+        return self.fit_at(delta, self.best_gamma(delta, keep, 16), keep)[0]
+
+    def search_delta(self, keep, rnd: int, d0: float | None) -> float:
+        """``delta`` of round ``rnd``: a grid (``d0`` None), then golden section near ``d0``."""
+        if self.ctx.zero_quantised:  # delta = refractory frames + 1/2, exactly; intervals allow a range of
+            # models, so take the shortest dead time whose fit is as good as the best (Occam)
+            grid = np.arange(0.5, DELTA_MAX, 1.0)
+            objs = np.array([self.coarse_objective(dl, keep) for dl in grid])
+            return float(grid[np.flatnonzero(objs <= 1.5 * objs.min() + 1e-7)[0]])
+        if d0 is None:
+            grid = np.arange(0.0, DELTA_MAX + 1e-9, 0.5)
+            d0 = min((self.coarse_objective(dl, keep), dl) for dl in grid)[1]
+        lo, hi = max(0.0, d0 - 0.5 + 0.25 * rnd), min(DELTA_MAX, d0 + 0.5 - 0.25 * rnd)
+        return stats.golden_min(lambda dl: self.fit_at(dl, self.best_gamma(dl, keep), keep)[0], lo, hi, iters=12)
+
+    def outliers(self, delta, lam_pred, keep) -> np.ndarray:
+        """``[P]`` pixels whose relative interval error is beyond 6 robust SDs (and 1 %)."""
+        if self.ctx.zero_quantised:
+            err = self.isi - delta + 0.5 - np.ceil(1.0 / np.clip(lam_pred, 1e-12, 1.0) - 1e-9)
+        else:
+            err = self.isi - interval_frames(lam_pred, delta)
+        rel = np.where(self.base_ok, err / np.where(self.base_ok, self.isi, 1.0), 0.0)
+        sd = stats.robust_sd(rel[keep])
+        return self.base_ok & (np.abs(rel) > max(6 * sd, 0.01))
+
+    def result(self, delta, gamma, obj, solution, keep, outlier) -> RateFit:
+        theta, cov, lam_pred = solution
+        a = float(theta[0])
+        se_gamma = _gamma_se(lambda gm: self.fit_at(delta, gm, keep)[0], gamma, obj, int(keep.sum()))
+        return RateFit(a=a, gamma=gamma, c=float(theta[1] / a) if self.use_c else 0.0, d=float(theta[-1] / a),
+                       delta=float(delta), fbar=self.fbar, use_c=self.use_c,
+                       se_c=math.sqrt(float(cov[1, 1]) / a ** 2) if self.use_c else math.inf,
+                       se_d=math.sqrt(float(cov[-1, -1])) / abs(a), se_gamma=se_gamma, objective=obj,
+                       lam_pred=lam_pred, isi=np.where(self.base_ok, self.isi, np.nan), keep=keep, outlier=outlier)
+
+
+def fit_rate_model(ctx: Context, flicker: FlickerFit | None, fbar: float, outlier: np.ndarray) -> RateFit:
+    """Fit the mean-rate model to the measured mean intervals, leaving out ``outlier [P]`` at
+    first: ``delta`` on a grid then by golden section, ``gamma`` by golden section, the linear
+    parameters by weighted least squares; drop new outliers and refit near the first answer."""
+    prob = _RateProblem.build(ctx, flicker, fbar)
+    keep, d0 = prob.base_ok & ~outlier, None
+    for rnd in range(2):
+        delta = prob.search_delta(keep, rnd, d0)
+        gamma = prob.best_gamma(delta, keep, iters=30)
+        obj, solution = prob.fit_at(delta, gamma, keep, want_cov=True)
+        outlier = prob.outliers(delta, solution[2], keep)
+        keep, d0 = prob.base_ok & ~outlier, delta
+    return prob.result(delta, gamma, obj, solution, keep, outlier)
+
+
+# ---------------------------------------------------------------------- flicker
+def fit_flicker(ctx: Context, rate: RateFit | None) -> FlickerFit | None:
+    """Sinusoid in the population signal of unsaturated, non-outlier pixels (stats.fit_sine);
+    the expected light comes from ``rate``, or (None) from the measured rates. None if fewer
+    than 16 pixels qualify."""
+    lam, weight, outlier = _light_weights(ctx, rate)
+    mask = (ctx.meas.rate < 0.45) & (lam < 0.6) & ~outlier & (ctx.meas.n >= 1)
+    if mask.sum() < 16:
+        return None
+    light_of = _light_of(ctx, weight)
+    light = light_of(mask)
+    sine = stats.fit_sine(stats.population_signal(ctx.spikes[:ctx.Tf], mask), light,
+                          min_period=6.0, max_period=2.0 * ctx.frames)
+    coherence = _coherence(ctx, lam, mask, light_of, sine.period_frames)
+    return FlickerFit(sine.period_frames, sine.depth, sine.phase, sine.z, coherence, mask, light)
+
+
+def _light_weights(ctx: Context, rate: RateFit | None):
+    """``(lambda [P], light weight [P], outlier [P])``: the weight is a pixel's light spikes per
+    frame times the readout's ``(d rate / d lambda)``."""
+    meas = ctx.meas
+    if rate is None or rate.lam_pred is None:  # every spike counted as light
+        return meas.rate, np.ones(meas.rate.size) * meas.rate, np.zeros(meas.rate.size, dtype=bool)
+    lam = rate.lam_pred
+    r = 1.0 / interval_frames(lam, rate.delta)
+    sens = (r / np.maximum(lam, 1e-12)) ** 2  # d rate / d lambda of the readout
+    light_x = lam - rate.a * ctx.Rb * (ctx.db + rate.d)
+    return lam, sens * light_x, rate.outlier
+
+
+def _light_of(ctx: Context, weight: np.ndarray):
+    """A function: pixel mask ``[P]`` -> expected light spikes per frame of those pixels ``[Tf]``."""
+    K = ctx.X.shape[0]
+    wts = interpolation_weights(K, ctx.frames)[:ctx.Tf]
+    xk = ctx.X.reshape(K, -1)
+    scale = weight / np.maximum(xk.mean(0), 1e-9)
+    return lambda m: wts @ (xk[:, m] * scale[m]).sum(axis=1)
+
+
+def _coherence(ctx: Context, lam, mask, light_of, period_frames) -> float:
+    """Flicker modulates the light of every pixel in phase and by the same depth; the beat of
+    regular pixel trains depends on their rate. Agreement of four brightness quartiles."""
+    edges = np.quantile(lam[mask], [0.25, 0.5, 0.75])
+    groups = np.searchsorted(edges, lam)
+    vecs = []
+    for gi in range(4):
+        m = mask & (groups == gi)
+        vecs.append(stats.sine_at(stats.population_signal(ctx.spikes[:ctx.Tf], m), light_of(m), 1.0 / period_frames))
+    return float(abs(sum(vecs)) / max(sum(abs(v) for v in vecs), 1e-12))
