@@ -92,9 +92,12 @@ def verify(dataset):
 
 
 # ---------------------------------------------------------------------- info / preview
+ANIMATION_WINDOW = 16  # frames of TFP per animation frame, unless --window says otherwise
+
+
 @cli.command()
 @click.argument("file", type=click.Path(path_type=Path))
-@click.option("--size", default=None, help="WxH, needed for .dat files.")
+@click.option("--size", default=None, help="WxH of a .dat file (default: from its dataset folder's config.yaml).")
 def info(file, size):
     """Frames, size, spike count and mean rate of a spike file."""
     from .spikeio import read_spikes
@@ -108,21 +111,42 @@ def info(file, size):
 
 @cli.command()
 @click.argument("file", type=click.Path(path_type=Path))
-@click.option("--out", "out_png", type=click.Path(path_type=Path), required=True, help="PNG to write.")
-@click.option("--size", default=None, help="WxH, needed for .dat files.")
-@click.option("--window", type=int, default=None, help="Frames averaged (TFP window, default: all).")
-def preview(file, out_png, size, window):
-    """Spike-rate image of a spike file (TFP over a window), as a PNG."""
+@click.option("--out", "out_png", type=click.Path(path_type=Path), required=True,
+              help="PNG to write (TFP | TFI), or a .gif / .mp4 animation of the stream (TFP over sliding windows).")
+@click.option("--size", default=None, help="WxH of a .dat file (default: from its dataset folder's config.yaml).")
+@click.option("--window", type=int, default=None,
+              help=f"Frames averaged (TFP window; default: all for a PNG, {ANIMATION_WINDOW} for an animation).")
+@click.option("--step", type=int, default=None,
+              help="Animation: frames from one window's start to the next (default: a quarter of the window).")
+@click.option("--fps", type=float, default=10.0, show_default=True, help="Animation: frames per second.")
+def preview(file, out_png, size, window, step, fps):
+    """Spike-rate image of a spike file (TFP over a window), as a PNG; or, with a .gif / .mp4
+    --out, an animation: one frame of TFP per window, windows every --step frames."""
     from .preview import preview_image
     from .spikeio import read_spikes, write_png
 
-    if out_png.suffix.lower() != ".png":
-        raise InputError(f"--out {out_png}: expected a .png path")
     if window is not None and window < 1:
         raise InputError(f"--window {window}: must be at least 1 frame")
+    if out_png.suffix.lower() != ".png":
+        return _preview_animation(file, out_png, size, window or ANIMATION_WINDOW, step, fps)
     s = read_spikes(file, _size(size))
     write_png(out_png, preview_image(s, window))
     click.echo(str(out_png))
+
+
+def _preview_animation(file, out, size, window, step, fps):
+    from .animation import FORMATS, check_animation, write_animation
+    from .preview import animation_frames, window_starts
+    from .spikeio import read_spikes
+
+    if out.suffix.lower() not in FORMATS:
+        raise InputError(f"--out {out}: expected a .png, {' or '.join(FORMATS)} path")
+    check_animation(out, fps)
+    step = max(1, window // 4) if step is None else step
+    window_starts(window, window, step)  # checks --step before the file is read
+    s = read_spikes(file, _size(size))
+    n = write_animation(out, animation_frames(s, window, step), fps)
+    click.echo(f"{out}: {n} frames, TFP over {min(window, s.shape[0])} frames every {step}")
 
 
 # ---------------------------------------------------------------------- entry point
@@ -151,10 +175,6 @@ def main(argv=None) -> int:
     except SystemExit as exc:
         return exc.code if isinstance(exc.code, int) else 0
     return 0
-
-
-def entry() -> None:  # pragma: no cover - console script shim
-    sys.exit(main())
 
 
 if __name__ == "__main__":  # pragma: no cover

@@ -1,8 +1,9 @@
-"""Pictures of spike streams: rate images a person can look at."""
+"""Pictures of spike streams: rate images and animations (TFP over sliding windows) a person can look at."""
 from __future__ import annotations
 
 import numpy as np
 
+from .errors import InputError
 from .recon import tfi, tfp
 from .spikeio import linear_to_srgb
 
@@ -25,3 +26,22 @@ def preview_image(spikes: np.ndarray, window: int | None = None) -> np.ndarray:
     gap = np.ones((H, 4))
     img = np.concatenate([rate_to_display(a, white), gap, rate_to_display(b, white)], axis=1)
     return np.clip(np.round(img * 255), 0, 255).astype(np.uint8)
+
+
+def window_starts(frames: int, window: int, step: int) -> range:
+    """First frames of the TFP windows of an animation: every ``step`` frames while a whole
+    ``window`` fits in the ``frames`` of the stream (one window if the stream is shorter)."""
+    if window < 1 or step < 1:
+        raise InputError(f"--window {window} and --step {step}: must be at least 1 frame")
+    return range(0, max(1, frames - window + 1), step)
+
+
+def animation_frames(spikes: np.ndarray, window: int, step: int):
+    """Frames ``uint8 [H, W]`` of a spike-stream animation, one per window of :func:`window_starts`:
+    TFP over ``window`` frames, all on one scale (the 99.5th percentile of the whole stream's
+    rate is white), so brightness is comparable from frame to frame."""
+    T = spikes.shape[0]
+    white = max(float(np.percentile(tfp(spikes, T), 99.5)), 1e-9)
+    for a in window_starts(T, window, step):
+        img = rate_to_display(tfp(spikes, window, center=a + min(window, T) // 2), white)
+        yield np.clip(np.round(img * 255), 0, 255).astype(np.uint8)
