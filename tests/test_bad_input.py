@@ -121,13 +121,13 @@ def transforms_not_an_object(w):
 @case
 def transforms_empty_frames(w):
     edit_json(w / "src/transforms_train.json", lambda d: d.update(frames=[]))
-    return conv(w / "src", w / "out"), "transforms_train.json"
+    return conv(w / "src", w / "out"), "non-empty list 'frames'"
 
 
 @case
 def transforms_no_camera_angle(w):
     edit_json(w / "src/transforms_train.json", lambda d: d.pop("camera_angle_x"))
-    return conv(w / "src", w / "out"), "transforms_train.json"
+    return conv(w / "src", w / "out"), "camera_angle_x"
 
 
 @case
@@ -574,8 +574,20 @@ def test_bad_input_one_line_nothing_written(name, work, capsys):
     assert after == before, f"files changed: {sorted(set(after.items()) ^ set(before.items()))[:6]}"
 
 
-def test_at_least_thirty_kinds():
-    assert len(CASES) + len(CONTENT_CASES) >= 30
+def test_every_case_is_its_own_kind(templates, tmp_path, capsys):
+    """The cases are distinct kinds of bad input: run each on its own copy, no two give the same
+    message (their folder aside), and there are at least 30 different messages."""
+    messages = {}
+    for name in sorted(CASES):
+        w = tmp_path / name
+        for sub in ("src", "render", "data"):
+            shutil.copytree(templates / sub, w / sub)
+        argv, _ = CASES[name](w)
+        _, _, err = run_main(argv, capsys)
+        messages.setdefault(err.strip().replace(str(w), "<case>"), []).append(name)
+    alike = sorted(names for names in messages.values() if len(names) > 1)
+    assert alike == [], f"cases that give the same message: {alike}"
+    assert len(messages) >= 30
 
 
 # A few cases through the installed console script in a fresh process: what a user sees.

@@ -13,6 +13,9 @@ still looking at the origin. Sub-frame ``k`` of ``K`` is at the centre of its sl
 exposure, time ``(k + 0.5) / K``, as the sensor model assumes (:func:`spikegen.sensor.frame_segments`),
 so its azimuth offset is ``motion_deg * ((k + 0.5) / K - 0.5)``. The mid-exposure pose (time
 1/2) is the view's ``transform_matrix``; ``motion_deg = 0`` is a static camera.
+
+A second rig, ``handheld`` (:func:`make_handheld_rig`, described above it), is a forward-facing
+capture held by hand, as the paper's real captures (docs/real_captures.md).
 """
 from __future__ import annotations
 
@@ -28,7 +31,7 @@ NEAR, FAR = 2.0, 6.0
 TEST_ELEVATION_DEG = 30.0
 DEFAULT_VIEWS = {"train": 100, "val": 100, "test": 200}
 __all__ = ["CAMERA_ANGLE_X", "DEFAULT_MOTION_DEG", "SPLITS", "focal_px", "make_rig", "make_views", "crop_window",
-           "project", "look_at", "subframe_poses"]
+           "project", "look_at", "subframe_poses", "make_handheld_rig"]
 
 
 def look_at(position: np.ndarray, target=(0.0, 0.0, 0.0), up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -141,3 +144,72 @@ def project(points: np.ndarray, pose: np.ndarray, width: int, height: int,
     out = np.stack([x, y], axis=1)
     out[z <= 0] = np.nan
     return out
+
+
+# ---------------------------------------------------------------------- handheld forward-facing rig
+# A person holding a spike camera in front of the scene (the paper's real captures, LLFF-like):
+# views on a 2D patch of HANDHELD_PATCH (width, height, world units) centred at distance RADIUS
+# from the origin in the direction (HANDHELD_AZIMUTH_DEG, HANDHELD_ELEVATION_DEG), the patch
+# spanning the centre camera's right and up axes; a jittered grid of `count` cells in row-major
+# order (each position uniform within +-HANDHELD_JITTER of its cell's size around the cell centre);
+# each camera looks at the origin, then turns by a random rotation (rotation vector, each component
+# normal with HANDHELD_TILT_DEG standard deviation, in camera axes): an unsteady hand. During the
+# exposure the hand drifts in a straight line in the patch plane, in a direction uniform in angle,
+# over RADIUS * radians(motion_deg) (so the origin's image moves by about motion_deg); orientation
+# is held. Sub-frame k sits at exposure time (k + 0.5) / K as for the NeRF rig.
+HANDHELD_AZIMUTH_DEG, HANDHELD_ELEVATION_DEG = 45.0, 25.0
+HANDHELD_PATCH = (0.8, 0.5)
+HANDHELD_JITTER = 0.35
+HANDHELD_TILT_DEG = 1.0
+HANDHELD_VIEWS = {"train": 35, "val": 0, "test": 0}
+HANDHELD_SIZE = (400, 250)  # width, height: the spike camera's frame
+
+
+def rotation_from_vector(rotvec: np.ndarray) -> np.ndarray:
+    """Rotation ``[3, 3]`` of angle ``|rotvec|`` (radians) about ``rotvec [3]`` (Rodrigues)."""
+    angle = float(np.linalg.norm(rotvec))
+    if angle < 1e-15:
+        return np.eye(3)
+    k = np.asarray(rotvec, dtype=np.float64) / angle
+    cross = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + math.sin(angle) * cross + (1.0 - math.cos(angle)) * cross @ cross
+
+
+def handheld_positions(count: int, rng: np.random.Generator) -> np.ndarray:
+    """Patch coordinates ``[count, 2]`` (right, up; world units) of a jittered grid, row-major."""
+    cols = max(1, math.ceil(math.sqrt(count * HANDHELD_PATCH[0] / HANDHELD_PATCH[1])))
+    rows = max(1, math.ceil(count / cols))
+    cell = np.array([HANDHELD_PATCH[0] / cols, HANDHELD_PATCH[1] / rows])
+    ij = np.stack([np.arange(count) % cols, np.arange(count) // cols], axis=1)
+    jitter = rng.uniform(-HANDHELD_JITTER, HANDHELD_JITTER, (count, 2))
+    centre = (ij + 0.5 + jitter) * cell - 0.5 * np.array(HANDHELD_PATCH)
+    return centre * [1.0, -1.0]  # first row at the top
+
+
+def make_handheld_views(split: str, count: int, subframes: int = 16, motion_deg: float = DEFAULT_MOTION_DEG,
+                        seed: int = 0) -> list[ViewRecord]:
+    """The ``count`` handheld views of ``split``: deterministic in (split, count, seed)."""
+    rng = np.random.default_rng(np.random.SeedSequence([int(seed) & 0xFFFFFFFF, _word("handheld:" + split)]))
+    az, el = math.radians(HANDHELD_AZIMUTH_DEG), math.radians(HANDHELD_ELEVATION_DEG)
+    centre = look_at(RADIUS * np.array([math.cos(el) * math.cos(az), math.cos(el) * math.sin(az), math.sin(el)]))
+    right, up = centre[:3, 0], centre[:3, 1]
+    patch = handheld_positions(count, rng)
+    tilts = rng.standard_normal((count, 3)) * math.radians(HANDHELD_TILT_DEG)
+    drift_angle = rng.uniform(0.0, 2.0 * math.pi, count)
+    drift = RADIUS * math.radians(motion_deg)
+    views = []
+    for i in range(count):
+        pose = look_at(centre[:3, 3] + patch[i, 0] * right + patch[i, 1] * up)
+        pose[:3, :3] = pose[:3, :3] @ rotation_from_vector(tilts[i])
+        step = drift * (math.cos(drift_angle[i]) * right + math.sin(drift_angle[i]) * up)
+        subs = np.repeat(pose[None], subframes, axis=0)
+        subs[:, :3, 3] += (subframe_times(subframes) - 0.5)[:, None] * step
+        views.append(ViewRecord(split, i, pose, subs))
+    return views
+
+
+def make_handheld_rig(counts: dict | None = None, subframes: int = 16, motion_deg: float = DEFAULT_MOTION_DEG,
+                      seed: int = 0) -> dict[str, list[ViewRecord]]:
+    """All splits of the handheld rig (``counts`` default: 35 train views, no val or test)."""
+    counts = dict(HANDHELD_VIEWS if counts is None else counts)
+    return {s: make_handheld_views(s, int(counts.get(s, 0)), subframes, motion_deg, seed) for s in SPLITS}

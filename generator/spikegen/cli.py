@@ -91,6 +91,24 @@ def verify(dataset):
     click.echo(f"{dataset}: OK")
 
 
+# ---------------------------------------------------------------------- import
+@cli.command("import")
+@click.argument("capture", type=click.Path(path_type=Path))
+@click.option("--size", required=True, help="WxH of the sensor, e.g. 400x250 (a .dat has no header).")
+@click.option("--out", "out_dir", type=click.Path(path_type=Path), required=True, help="Dataset folder to write.")
+@click.option("--calibration", default=None, help="PREFIX of a sensor from `spikegen calibrate` (PREFIX.json).")
+@click.option("--frames", type=int, default=None, help="Use the first N frames of each file [default: all of the "
+              "shortest file's].")
+@click.option("--recon", "reconstruction", type=click.Choice(["tfp", "tfi"]), default="tfp", show_default=True,
+              help="Image per view: TFP over the whole stream, or TFI at the middle frame (docs/real_captures.md).")
+def import_(capture, size, out_dir, calibration, frames, reconstruction):
+    """A folder of real spike recordings, one file per viewpoint, as a dataset folder with poses and
+    intrinsics from structure from motion (pycolmap)."""
+    from .importer import import_capture
+
+    click.echo(str(import_capture(capture, _size(size), out_dir, calibration, frames, reconstruction)))
+
+
 # ---------------------------------------------------------------------- info / preview
 ANIMATION_WINDOW = 16  # frames of TFP per animation frame, unless --window says otherwise
 

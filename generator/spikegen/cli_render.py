@@ -9,10 +9,12 @@ from pathlib import Path
 import click
 
 from .errors import InputError
-from .formats import DEFAULT_MOTION_DEG, QUICK, RenderJob
+from .camera import HANDHELD_SIZE, HANDHELD_VIEWS
+from .formats import DEFAULT_MOTION_DEG, QUICK, RIGS, RenderJob
 from .render import RenderFolder, check_export, convert_all, identify_blend, images_per_view, parse_views, \
     render_steps
 from .scenes import SCENES
+from .spikeio import parse_size
 
 
 @click.command()
@@ -21,10 +23,14 @@ from .scenes import SCENES
               help="Spikes per 256 frames at X = 1 (repeatable: 16, 32, 64 in the paper).")
 @click.option("--out", "out_dir", type=click.Path(path_type=Path), default=Path("out"), show_default=True,
               help="Folder receiving <scene>_render/ and <scene>_i<I>/.")
-@click.option("--resolution", type=int, default=None,
-              help="Image width and height [default: 400; 100 with --quick].")
+@click.option("--resolution", default=None,
+              help="Image size, N (N x N) or WxH [default: 400; 100 with --quick; 400x250 with --rig handheld].")
 @click.option("--views", default=None,
-              help="train,val,test view counts [default: 100,100,200; 20,4,8 with --quick].")
+              help="train,val,test view counts [default: 100,100,200; 20,4,8 with --quick; 35,0,0 with --rig "
+                   "handheld].")
+@click.option("--rig", type=click.Choice(RIGS), default="nerf", show_default=True,
+              help="nerf: the NeRF-synthetic sphere; handheld: a forward-facing handheld capture "
+                   "(docs/real_captures.md).")
 @click.option("--subframes", type=int, default=16, show_default=True, help="Sub-frames K rendered per view.")
 @click.option("--frames", type=int, default=256, show_default=True, help="Readout frames T per view.")
 @click.option("--motion", "motion_deg", type=float, default=DEFAULT_MOTION_DEG, show_default=True,
@@ -50,13 +56,13 @@ from .scenes import SCENES
 @click.option("--gpu-index", type=click.IntRange(min=0), default=None,
               help="Render on this one GPU of the backend (e.g. one per process on a multi-GPU machine).")
 def render(scene, intensities, out_dir, resolution, views, subframes, frames, motion_deg, samples, png_samples,
-           denoise, engine, blend, sensor, seed, workers, scheduler, quick, device, gpu_index):
+           denoise, engine, blend, sensor, seed, workers, scheduler, quick, device, gpu_index, rig):
     """Render a scene through Blender and write <out>/<scene>_i<I>/ for each intensity."""
     name, source = _scene_name(scene, blend)
-    res = resolution or (QUICK["resolution"] if quick else 400)
-    counts = parse_views(views) if views else (QUICK["views"] if quick else (100, 100, 200))
-    job = RenderJob(name, res, res, counts, subframes, frames, motion_deg, engine, samples, png_samples, seed,
-                    source=source, denoise=denoise)
+    width, height = _image_size(resolution, rig, quick)
+    counts = parse_views(views) if views else _default_views(rig, quick)
+    job = RenderJob(name, width, height, counts, subframes, frames, motion_deg, engine, samples, png_samples, seed,
+                    source=source, denoise=denoise, rig=rig)
     msgs = check_export(job, intensities, sensor, seed)  # fail before rendering anything
     if workers < 1:
         msgs.append(f"--workers must be a positive integer, got {workers}")
@@ -77,6 +83,22 @@ def render(scene, intensities, out_dir, resolution, views, subframes, frames, mo
     finally:
         if client is not None:
             client.close()
+
+
+def _image_size(resolution, rig: str, quick: bool) -> tuple[int, int]:
+    """(width, height) from ``--resolution`` N or WxH, else the rig's default."""
+    if resolution is None:
+        return HANDHELD_SIZE if rig == "handheld" else (QUICK["resolution"] if quick else 400,) * 2
+    try:
+        return parse_size(resolution) if "x" in str(resolution).lower() else (int(resolution),) * 2
+    except (ValueError, InputError):
+        raise InputError(f"--resolution {resolution!r}: expected N or WxH, e.g. 400 or 400x250") from None
+
+
+def _default_views(rig: str, quick: bool) -> tuple:
+    if rig == "handheld":
+        return tuple(HANDHELD_VIEWS[s] for s in ("train", "val", "test"))
+    return QUICK["views"] if quick else (100, 100, 200)
 
 
 def _with_device(job: RenderJob, device: str, gpu_index) -> RenderJob:

@@ -87,8 +87,11 @@ def _open_nerf(root: Path) -> Source:
             continue
         doc = read_json(jpath)
         frames, angle = doc.get("frames"), doc.get("camera_angle_x")
-        if not isinstance(frames, list) or not frames or not isinstance(angle, (int, float)) or not 0 < angle < 3.2:
-            raise InputError(f"{jpath}: needs a field of view 'camera_angle_x' (radians) and a non-empty list 'frames'")
+        if not isinstance(frames, list) or not frames:
+            raise InputError(f"{jpath}: needs a non-empty list 'frames' (one per view)")
+        if not isinstance(angle, (int, float)) or not 0 < angle < 3.2:
+            raise InputError(f"{jpath}: needs 'camera_angle_x', the horizontal field of view in radians "
+                             f"(0 < angle < pi), got {angle!r}")
         cam = float(angle) if cam is None else cam
         views += [ViewRecord.from_transforms_frame(fr, split, i, root, f"{jpath} frame {i}", keep=("rotation",))
                   for i, fr in enumerate(frames)]
@@ -308,11 +311,17 @@ def _finish(out: Path, src: Source, params: ConvertParams, sensor: Sensor) -> No
             dats += [v.name + ".dat" for v in views]
     save_sensor(sensor, out / "sensor")
     write_bytes_atomic(out / CONFIG_YAML, spikecv_config(spike, dats).encode())
+    write_manifest(out, params.to_json(), params.seed)
+
+
+def write_manifest(out: Path, parameters: dict, seed: int) -> None:
+    """Last step of a dataset folder: remove stale temporaries, list every file with its size and
+    sha256 in ``manifest.json`` (written last), drop the job file."""
     remove_stale_parts(out, recursive=True)  # temporaries of writes killed in an earlier run
     files = sorted(p for p in out.rglob("*") if p.is_file() and not p.name.startswith(".")
                    and p.name != "manifest.json")
     entries = tuple(FileEntry(p.relative_to(out).as_posix(), p.stat().st_size, sha256_file(p)) for p in files)
-    manifest = Manifest(f"spikegen {__version__}", params.to_json(), params.seed, entries)
+    manifest = Manifest(f"spikegen {__version__}", parameters, seed, entries)
     write_json_atomic(out / "manifest.json", manifest.to_json())
     (out / JOB_FILE).unlink(missing_ok=True)
 

@@ -223,10 +223,11 @@ class ViewRecord:
 
 # ---------------------------------------------------------------------- the render job
 HEADER_KEYS = ("format", "scene", "camera_angle_x", "width", "height", "subframes", "frames", "motion_deg",
-               "engine", "samples", "png_samples", "denoise", "seed", "views", "source", "device")
+               "engine", "samples", "png_samples", "denoise", "seed", "views", "source", "device", "rig")
 ENGINES = ("cycles", "workbench")
 GPU_BACKENDS = ("OPTIX", "CUDA", "HIP", "METAL", "ONEAPI")  # Cycles' GPU backends, in order of preference
-HEADER_DEFAULTS = {"device": "cpu"}  # what a render.json written before a key existed meant by its absence
+HEADER_DEFAULTS = {"device": "cpu", "rig": "nerf"}  # what a render.json written before a key existed meant
+RIGS = ("nerf", "handheld")  # camera rigs of spikegen.camera: NeRF-synthetic sphere, handheld forward-facing
 
 
 @dataclass(frozen=True)
@@ -248,6 +249,7 @@ class RenderJob:
     source: str = "builtin"  # "builtin", "scene" (the add-on's open scene), or "blend:<sha256>"
     denoise: bool = False  # OpenImageDenoise on each image (docs/rendering.md)
     device: str = "cpu"  # where Cycles renders: "cpu", or "gpu:<backend>" such as "gpu:OPTIX" (bytes differ)
+    rig: str = "nerf"  # one of RIGS (spikegen.camera)
 
     @property
     def png_render_samples(self) -> int:
@@ -277,6 +279,8 @@ class RenderJob:
             msgs.append(f"camera_angle_x {self.camera_angle_x}: expected a field of view between 0 and pi")
         if self.device != "cpu" and self.device.partition(":")[2] not in GPU_BACKENDS:
             msgs.append(f"device {self.device!r}: expected cpu or gpu:<{'|'.join(GPU_BACKENDS)}>")
+        if self.rig not in RIGS:
+            msgs.append(f"--rig {self.rig!r}: expected one of {', '.join(RIGS)}")
         return msgs
 
     def header(self) -> dict:
@@ -568,3 +572,85 @@ class ConvertTask:
     dat_bytes: int
     levels: tuple  # LevelOutput
     threads: int = 1
+
+
+# ---------------------------------------------------------------------- real captures (spikegen import)
+POSES_FROM_COLMAP = "colmap"  # transforms "poses_from": structure from motion with pycolmap
+IMAGE_KIND_RECONSTRUCTION = "reconstruction"  # a frame's PNG was reconstructed from its own spikes
+RECONSTRUCTIONS = ("tfi", "tfp")  # spikegen.recon methods an import can write as the views' images
+
+
+@dataclass(frozen=True)
+class Intrinsics:
+    """Pinhole intrinsics as nerfstudio and instant-ngp read them: focal lengths and principal
+    point in pixels (x right, y down, origin at the top-left corner of the top-left pixel), and
+    the image size ``w`` x ``h``."""
+
+    fl_x: float
+    fl_y: float
+    cx: float
+    cy: float
+    w: int
+    h: int
+
+    @property
+    def camera_angle_x(self) -> float:
+        """Horizontal field of view (radians): ``2 atan(w / (2 fl_x))``, for NeRF-synthetic loaders."""
+        return 2.0 * math.atan(self.w / (2.0 * self.fl_x))
+
+    def to_json(self) -> dict:
+        return {"fl_x": self.fl_x, "fl_y": self.fl_y, "cx": self.cx, "cy": self.cy, "w": self.w, "h": self.h}
+
+
+@dataclass(frozen=True)
+class ImportParams:
+    """What decides an imported folder's bytes: the manifest's ``"parameters"``."""
+
+    source: str  # the capture folder's name
+    files: tuple  # the spike files imported, in view order (names in the capture folder)
+    width: int
+    height: int
+    frames: int
+    reconstruction: str  # one of RECONSTRUCTIONS
+    calibration: str | None  # sha256 of the calibration's JSON (None: ideal sensor)
+    pycolmap: str  # version of pycolmap that found the poses
+    seed: int = 0  # pycolmap's random seed
+    readout_hz: int = READOUT_HZ
+
+    def to_json(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["files"] = list(self.files)
+        return d
+
+    def matches(self, recorded) -> bool:
+        return recorded == json.loads(json.dumps(self.to_json()))
+
+
+@dataclass(frozen=True, eq=False)
+class CaptureTransforms:
+    """``transforms_train.json`` of an imported real capture (shared/specs/dataset.md, "Real captures").
+
+    ``frames``: ViewRecords of the registered views (camera-to-world in the normalised frame,
+    OpenGL/NeRF camera axes, one sub-frame pose each); ``bounds_m``: ``[n, 2]`` near and far
+    depth of each view's sparse points in the normalised frame's units; ``sources``: each view's
+    spike file in the capture folder; ``normalisation``: the ``[4, 4]`` similarity taking
+    COLMAP's world coordinates to the normalised frame (``p = M p_colmap``)."""
+
+    intrinsics: Intrinsics
+    spike: SpikeBlock
+    frames: tuple
+    bounds_m: np.ndarray
+    sources: tuple
+    normalisation: np.ndarray
+    reconstruction: str
+    unregistered: tuple = ()  # spike files whose view COLMAP could not register
+    poses_from: str = POSES_FROM_COLMAP
+
+    def to_json(self) -> dict:
+        base = Transforms(self.intrinsics.camera_angle_x, self.spike, self.frames).to_json()
+        frames = [{**fr, "image_kind": IMAGE_KIND_RECONSTRUCTION, "reconstruction": self.reconstruction,
+                   "source_file": src, "near": float(b[0]), "far": float(b[1])}
+                  for fr, src, b in zip(base["frames"], self.sources, self.bounds_m)]
+        return {"camera_angle_x": base["camera_angle_x"], **self.intrinsics.to_json(),
+                "poses_from": self.poses_from, "normalising_transform": self.normalisation.tolist(),
+                "unregistered": list(self.unregistered), "spike": base["spike"], "frames": frames}

@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .camera import make_rig
+from .camera import make_handheld_rig, make_rig
 from .errors import InputError, OutputError
 from .formats import QUICK, SPLITS, RenderDoc, RenderJob, ViewRecord, intensity_problem, read_json
 from .spikeio import atomic_path, remove_stale_parts, sha256_file, write_json_atomic
@@ -35,8 +35,9 @@ __all__ = ["QUICK", "RenderJob", "RenderFolder", "check_job", "check_export", "r
 
 
 def rig_of(job: RenderJob) -> dict[str, list[ViewRecord]]:
-    """The job's views: ``{"train": [ViewRecord], "val": [...], "test": [...]}``."""
-    return make_rig(job.view_counts, job.subframes, job.motion_deg, job.seed)
+    """The job's views: ``{"train": [ViewRecord], "val": [...], "test": [...]}`` on its rig."""
+    make = make_handheld_rig if job.rig == "handheld" else make_rig
+    return make(job.view_counts, job.subframes, job.motion_deg, job.seed)
 
 
 def check_job(job: RenderJob) -> None:

@@ -1,0 +1,405 @@
+"""``spikegen import``: a folder of real spike recordings (one file per viewpoint) -> a dataset folder.
+
+Stages (each with a progress bar):
+
+1. **streams**: every spike file is checked (size, layout, frame count) before anything is written; then
+   per view the first ``frames`` frames are written as ``train/r_N.dat`` (dataset.md layout) and an
+   image reconstructed from them as ``train/r_N.png`` (:func:`view_image`);
+2. **sfm**: pycolmap finds the poses and one shared pinhole camera from those images
+   (:func:`run_sfm`: SIFT, exhaustive matching, incremental mapping; one thread, fixed seeds, so a
+   rerun gives the same poses bit for bit);
+3. **write**: poses normalised (:func:`normalise`), ``transforms_train.json``
+   (:class:`~spikegen.formats.CaptureTransforms`), ``sensor.json`` (the calibration, or the ideal
+   sensor), ``config.yaml`` and last ``manifest.json``.
+
+A ``.dat`` without a header is read at ``--size``; one whose rows carry :data:`HEADER_COLUMNS`
+extra leading columns (a 416-wide file for a 400-wide sensor, as some cameras write) is
+recognised by its size and those columns dropped. Views COLMAP does not register are left out
+and named; fewer than :data:`MIN_REGISTERED` registered is an error and nothing is left.
+"""
+from __future__ import annotations
+
+import hashlib
+import re
+import shutil
+import tempfile
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from .dataset import CONFIG_YAML, _claim, write_manifest
+from .errors import InputError, OutputError
+from .formats import (RECONSTRUCTIONS, CaptureTransforms, ImportParams, Intrinsics, SpikeBlock, ViewRecord,
+                      spikecv_config)
+from .recon import rate_to_radiance, tfi, tfp
+from .sensor import Sensor
+from .sensorfile import save_sensor
+from .spikeio import decode_dat, linear_to_srgb, read_npz, write_dat, write_json_atomic, write_png, \
+    write_bytes_atomic
+
+SPIKE_SUFFIXES = (".dat", ".npz")
+HEADER_COLUMNS = 16  # leading columns per row that some cameras' .dat files carry (250 x 416 for 250 x 400)
+MIN_REGISTERED = 3  # fewer registered views cannot make a dataset
+SFM_SEED = 0  # every random seed pycolmap takes
+INIT_MIN_TRI_ANGLE_DEG = 4.0  # COLMAP's 16 degrees is more than a handheld patch's baseline gives
+INIT_MIN_INLIERS = 50  # COLMAP's 100 is more than a small spike frame's features give
+CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, principal point at the image centre (kept fixed)
+DEFAULT_RECONSTRUCTION = "tfp"  # chosen by measured pose accuracy (docs/real_captures.md)
+WHITE_PERCENTILE = 99.5  # the brightness shown as white in a view's PNG
+BOUND_PERCENTILES = (1.0, 99.0)  # near / far: these percentiles of a view's sparse-point depths ...
+BOUND_MARGIN = (0.9, 1.1)  # ... times these factors
+CV_TO_GL = np.diag([1.0, -1.0, -1.0, 1.0])  # COLMAP/OpenCV camera axes (y down, z forward) <-> OpenGL
+
+
+@dataclass(frozen=True)
+class CaptureFile:
+    path: Path
+    frames: int  # frames the file holds
+    header_columns: int = 0  # leading columns of each row to drop (.dat only)
+
+
+# ---------------------------------------------------------------------- stage 1: spike files
+def _natural_key(path: Path):
+    return [int(t) if t.isdigit() else t for t in re.split(r"(\d+)", path.name)]
+
+
+def list_capture(folder, size: tuple[int, int]) -> list[CaptureFile]:
+    """The capture's spike files in natural name order, each checked (size, layout)."""
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"{folder}: no such folder (expected a folder of spike files, one per viewpoint)")
+    paths = sorted((p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in SPIKE_SUFFIXES),
+                   key=_natural_key)
+    if not paths:
+        raise InputError(f"{folder}: no spike files (.dat or .npz) in this folder")
+    return [_probe(p, size) for p in paths]
+
+
+def _probe(path: Path, size: tuple[int, int]) -> CaptureFile:
+    w, h = size
+    if path.suffix.lower() == ".npz":
+        shape = read_npz(path).shape
+        if (shape[2], shape[1]) != (w, h):
+            raise InputError(f"{path}: stream is {shape[2]}x{shape[1]}, but --size says {w}x{h} "
+                             "(all views of a capture must have one size)")
+        return CaptureFile(path, shape[0])
+    try:
+        n = path.stat().st_size
+    except OSError as exc:
+        raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+    fits = [extra for extra in (0, HEADER_COLUMNS) if n > 0 and n % ((w + extra) * h // 8) == 0]
+    if len(fits) == 2:  # a size both layouts divide (e.g. 1000 frames of 416 = 1040 of 400): ask the pixels
+        fits = [min(fits, key=lambda extra: _shear_score(path, size, extra))]
+    if fits:
+        return CaptureFile(path, n // ((w + fits[0]) * h // 8), fits[0])
+    raise InputError(f"{path}: {n} bytes is not a whole number of {w}x{h} frames ({w * h // 8} bytes each), "
+                     f"nor of {w + HEADER_COLUMNS}x{h} frames with a row header: truncated, or another --size")
+
+
+def _shear_score(path: Path, size: tuple[int, int], extra: int, frames: int = 64) -> float:
+    """Mean absolute difference between vertically adjacent pixels of the spike rate over the first
+    ``frames`` frames, read with ``extra`` header columns per row: read in the wrong layout, every
+    row lands shifted against the one above and frames mix, so the image is far less smooth."""
+    w, h = size
+    whole = path.stat().st_size // ((w + extra) * h // 8)
+    rate = tfp(read_view(CaptureFile(path, whole, extra), size, min(frames, whole)), frames).astype(np.float64)
+    return float(np.abs(np.diff(rate, axis=0)).mean())
+
+
+def read_view(cf: CaptureFile, size: tuple[int, int], frames: int) -> np.ndarray:
+    """The first ``frames`` frames of one capture file, ``uint8 [T, H, W]`` upright."""
+    w, h = size
+    if cf.path.suffix.lower() == ".npz":
+        return read_npz(cf.path)[:frames]
+    width = w + cf.header_columns
+    try:
+        with open(cf.path, "rb") as fh:
+            data = fh.read(frames * width * h // 8)
+    except OSError as exc:
+        raise InputError(f"{cf.path}: cannot read: {exc.strerror or exc}") from None
+    spikes = decode_dat(data, h, width, source=str(cf.path), frames=frames)
+    return np.ascontiguousarray(spikes[:, :, cf.header_columns:])
+
+
+def view_rate(spikes: np.ndarray, method: str) -> np.ndarray:
+    """Spikes per frame ``float32 [H, W]``: TFP over the whole stream, or TFI at its middle frame."""
+    return tfi(spikes) if method == "tfi" else tfp(spikes, spikes.shape[0])
+
+
+def view_image(rate: np.ndarray, sensor: Sensor) -> np.ndarray:
+    """The view's PNG, ``uint8 [H, W]``: the rate with the sensor's fixed pattern removed
+    (``rate / R - d``), :data:`WHITE_PERCENTILE` of it shown as white, sRGB-encoded."""
+    x = rate_to_radiance(rate, 256.0, sensor)
+    white = max(float(np.percentile(x, WHITE_PERCENTILE)), 1e-6)
+    return np.round(linear_to_srgb(np.clip(x / white, 0.0, 1.0)) * 255.0).astype(np.uint8)
+
+
+def write_views(files, size, frames: int, method: str, sensor: Sensor, out: Path, progress: bool) -> float:
+    """Stage 1: ``train/r_N.dat`` and ``train/r_N.png`` of every view (a ``.dat`` already there at
+    the right size is kept, and a PNG already there: both are written atomically); returns the
+    median over the views of each view's 99th-percentile rate (spikes per frame)."""
+    from tqdm import tqdm
+
+    dat_bytes = frames * size[0] * size[1] // 8
+    bright = []
+    for i, cf in enumerate(tqdm(files, desc="streams", unit="view", disable=not progress)):
+        spikes = read_view(cf, size, frames)
+        bright.append(np.percentile(tfp(spikes, frames), 99.0))
+        dat, png = out / "train" / f"r_{i}.dat", out / "train" / f"r_{i}.png"
+        if not (dat.is_file() and dat.stat().st_size == dat_bytes):
+            write_dat(dat, spikes)
+        if not png.is_file():
+            write_png(png, view_image(view_rate(spikes, method), sensor))
+    return float(np.median(bright))
+
+
+# ---------------------------------------------------------------------- stage 2: structure from motion
+def _pycolmap():
+    try:
+        import pycolmap
+    except ImportError:
+        raise InputError("spikegen import needs pycolmap: pip install 'spikenerf-suite[real]' "
+                         "(or pip install pycolmap==4.2.1)") from None
+    return pycolmap
+
+
+def _sfm_options(pycolmap):
+    """(extraction, matching, verification, mapping) options: CPU, one thread, every seed fixed."""
+    extraction = pycolmap.FeatureExtractionOptions(num_threads=1, use_gpu=False)
+    matching = pycolmap.FeatureMatchingOptions(num_threads=1, use_gpu=False)
+    verification = pycolmap.TwoViewGeometryOptions()
+    verification.ransac.random_seed, verification.ransac.num_threads = SFM_SEED, 1
+    mapping = pycolmap.IncrementalPipelineOptions(num_threads=1, random_seed=SFM_SEED)
+    mapping.mapper.num_threads, mapping.mapper.random_seed = 1, SFM_SEED
+    mapping.mapper.init_min_tri_angle = INIT_MIN_TRI_ANGLE_DEG
+    mapping.mapper.init_min_num_inliers = INIT_MIN_INLIERS
+    mapping.triangulation.random_seed = SFM_SEED
+    return extraction, matching, verification, mapping
+
+
+def run_sfm(image_dir: Path, names: list[str], progress: bool = True):
+    """pycolmap's reconstruction of ``names`` (images in ``image_dir``) holding the most registered
+    images, or ``None`` when it registers none. Work files go to a temporary folder."""
+    from tqdm import tqdm
+
+    pycolmap = _pycolmap()
+    pycolmap.logging.minloglevel = pycolmap.logging.Level.ERROR.value  # COLMAP's progress lines off
+    pycolmap.set_random_seed(SFM_SEED)
+    extraction, matching, verification, mapping = _sfm_options(pycolmap)
+    reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODEL)
+    with tempfile.TemporaryDirectory(prefix="spikegen-sfm-") as work, \
+            tqdm(total=3, desc="sfm (features, matches, mapping)", disable=not progress) as bar:
+        db = Path(work) / "database.db"
+        pycolmap.extract_features(db, image_dir, image_names=names, camera_mode=pycolmap.CameraMode.SINGLE,
+                                  reader_options=reader, extraction_options=extraction, device=pycolmap.Device.cpu)
+        bar.update()
+        pycolmap.match_exhaustive(db, matching_options=matching, verification_options=verification,
+                                  device=pycolmap.Device.cpu)
+        bar.update()
+        models = pycolmap.incremental_mapping(db, image_dir, Path(work) / "sparse", mapping)
+        bar.update()
+    if not models:
+        return None
+    return max(sorted(models.items()), key=lambda kv: kv[1].num_reg_images())[1]
+
+
+@dataclass(frozen=True)
+class SfmResult:
+    """What the dataset needs from a reconstruction, in COLMAP's world frame."""
+
+    names: tuple  # registered image names, in the order given
+    c2w_gl: np.ndarray  # [n, 4, 4] camera-to-world, OpenGL camera axes
+    points: tuple  # per view: [m, 3] sparse points it observes
+    intrinsics: Intrinsics
+
+
+def sfm_result(rec, names: list[str]) -> SfmResult:
+    """Poses, observed points and the shared camera of the registered views among ``names``."""
+    by_name = {} if rec is None else {img.name: img for img in rec.images.values() if img.has_pose}
+    found = [n for n in names if n in by_name]
+    poses, points = [], []
+    for n in found:
+        img = by_name[n]
+        w2c = np.eye(4)
+        w2c[:3] = np.asarray(img.cam_from_world().matrix(), dtype=np.float64)
+        poses.append(np.linalg.inv(w2c) @ CV_TO_GL)
+        ids = [p.point3D_id for p in img.get_observation_points2D()]
+        points.append(np.array([rec.point3D(k).xyz for k in ids], dtype=np.float64).reshape(-1, 3))
+    cam = by_name[found[0]].camera if found else None
+    intr = None if cam is None else Intrinsics(float(cam.focal_length_x), float(cam.focal_length_y),
+                                               float(cam.principal_point_x), float(cam.principal_point_y),
+                                               int(cam.width), int(cam.height))
+    return SfmResult(tuple(found), np.array(poses).reshape(-1, 4, 4), tuple(points), intr)
+
+
+# ---------------------------------------------------------------------- stage 3: the normalised frame
+def normalise(c2w_gl: np.ndarray, points: tuple) -> np.ndarray:
+    """The similarity ``M [4, 4]`` (``p = M p_colmap``) to the dataset's frame: origin at the
+    cameras' mean centre; +Z along the cameras' mean up (+Y) axis; +Y along their mean viewing
+    direction (-Z) made orthogonal to it (the first camera's when they cancel out); scaled so the
+    cameras and the sparse points (within the 99th percentile of distance) fit in the unit sphere."""
+    centre = c2w_gl[:, :3, 3].mean(axis=0)
+    z = c2w_gl[:, :3, 1].mean(axis=0)
+    z /= np.linalg.norm(z)
+    y = -c2w_gl[:, :3, 2].mean(axis=0)
+    y -= (y @ z) * z
+    if np.linalg.norm(y) < 1e-3:
+        y = -c2w_gl[0, :3, 2] - (-c2w_gl[0, :3, 2] @ z) * z
+    y /= np.linalg.norm(y)
+    rot = np.stack([np.cross(y, z), y, z])  # rows: new axes in COLMAP's frame
+    pts = np.concatenate([p for p in points if len(p)] or [np.zeros((0, 3))])
+    reach = np.linalg.norm(c2w_gl[:, :3, 3] - centre, axis=1).max()
+    if len(pts):
+        reach = max(reach, float(np.percentile(np.linalg.norm(pts - centre, axis=1), 99.0)))
+    scale = 1.0 / max(reach, 1e-12)
+    m = np.eye(4)
+    m[:3, :3], m[:3, 3] = scale * rot, -scale * rot @ centre
+    return m
+
+
+def apply_normalisation(m: np.ndarray, c2w_gl: np.ndarray) -> np.ndarray:
+    """Camera-to-world poses ``[n, 4, 4]`` moved by the similarity ``m`` (rotation kept orthonormal)."""
+    scale = np.cbrt(np.linalg.det(m[:3, :3]))
+    out = m @ c2w_gl
+    out[:, :3, :3] /= scale
+    return out
+
+
+def view_bounds(c2w: np.ndarray, points: np.ndarray, m: np.ndarray) -> tuple[float, float]:
+    """Near and far of one view (normalised units) from the depths of the sparse points it sees."""
+    if len(points) == 0:
+        return 0.0, 0.0
+    pts = points @ m[:3, :3].T + m[:3, 3]
+    depth = -(pts - c2w[:3, 3]) @ c2w[:3, 2]  # along the viewing direction (-Z)
+    lo, hi = np.percentile(depth, BOUND_PERCENTILES)
+    return float(max(lo, 0.0) * BOUND_MARGIN[0]), float(hi * BOUND_MARGIN[1])
+
+
+# ---------------------------------------------------------------------- the whole import
+def import_capture(capture, size, out, calibration=None, frames: int | None = None,
+                   reconstruction: str = DEFAULT_RECONSTRUCTION, progress: bool = True) -> Path:
+    """Write the dataset folder ``out`` from the spike files in ``capture``; returns ``out``.
+
+    Everything about the input is checked before anything is written. An error after that (no
+    view registers, or fewer than :data:`MIN_REGISTERED`) removes the folder this run created;
+    an interrupted run keeps its finished views and a rerun ends with the same bytes."""
+    from tqdm import tqdm
+
+    out = Path(out)
+    if reconstruction not in RECONSTRUCTIONS:
+        raise InputError(f"--recon {reconstruction!r}: expected one of {', '.join(RECONSTRUCTIONS)}")
+    files = list_capture(capture, size)
+    frames = _frames(files, frames)
+    sensor, digest = _calibration(calibration, size)
+    params = ImportParams(Path(capture).resolve().name, tuple(f.path.name for f in files), size[0], size[1], frames,
+                          reconstruction, digest, _pycolmap().__version__, SFM_SEED)
+    created = not out.exists()
+    _claim(out, params)
+    try:
+        rate99 = write_views(files, size, frames, reconstruction, sensor, out, progress)
+        names = [f"r_{i}.png" for i in range(len(files))]
+        sfm = sfm_result(run_sfm(out / "train", names, progress), names)
+        _check_registered(sfm, files, capture)
+        with tqdm(total=1, desc="write", disable=not progress) as bar:
+            _write_dataset(out, params, sfm, files, rate99, sensor)
+            bar.update()
+    except (InputError, OutputError):
+        if created:
+            shutil.rmtree(out, ignore_errors=True)
+        raise
+    return out
+
+
+def _frames(files, frames) -> int:
+    shortest = min(f.frames for f in files)
+    if frames is None:
+        return shortest
+    if int(frames) != frames or frames < 1:
+        raise InputError(f"--frames must be a positive integer, got {frames}")
+    short = [f for f in files if f.frames < frames]
+    if short:
+        raise InputError(f"{short[0].path}: holds {short[0].frames} frames, fewer than --frames {frames}")
+    return int(frames)
+
+
+def _calibration(prefix, size) -> tuple[Sensor, str | None]:
+    """The calibration's sensor at the capture's size and the sha256 of its JSON, or the ideal sensor."""
+    if prefix is None:
+        return Sensor(name="ideal"), None
+    from .presets import get_sensor
+
+    path = Path(prefix)
+    path = path if path.suffix == ".json" else path.parent / (path.name + ".json")
+    if not path.is_file():
+        raise InputError(f"--calibration {prefix}: no such sensor file {path} (write one with spikegen calibrate)")
+    sensor = get_sensor(str(path), size[1], size[0])
+    return sensor.sized(size[1], size[0]), hashlib.sha256(path.read_bytes()).hexdigest()
+
+
+def _check_registered(sfm: SfmResult, files, capture) -> None:
+    if len(sfm.names) < MIN_REGISTERED:
+        raise InputError(f"{capture}: structure from motion registered {len(sfm.names)} of {len(files)} views "
+                         f"(at least {MIN_REGISTERED} are needed); nothing written")
+
+
+def _write_dataset(out: Path, params: ImportParams, sfm: SfmResult, files, rate99: float, sensor: Sensor) -> None:
+    """Stage 3: transforms_train.json, sensor, config.yaml and manifest.json; unregistered views' files removed."""
+    m = normalise(sfm.c2w_gl, sfm.points)
+    poses = apply_normalisation(m, sfm.c2w_gl)
+    index = [int(n[2:-4]) for n in sfm.names]  # "r_<i>.png": view i keeps its files' names
+    views = tuple(ViewRecord("train", i, p, p[None]) for i, p in zip(index, poses))
+    every = np.concatenate(sfm.points)  # a view that sees no sparse point gets the bounds of them all
+    bounds = np.array([view_bounds(p, pts if len(pts) else every, m)
+                       for p, pts in zip(poses, sfm.points)]).reshape(-1, 2)
+    left_out = tuple(f.path.name for i, f in enumerate(files) if i not in set(index))
+    _remove_unregistered(out / "train", index, len(files))
+    spike = SpikeBlock(params.height, params.width, params.frames, 1, max(256.0 * rate99, 1e-3), background=None)
+    doc = CaptureTransforms(sfm.intrinsics, spike, views, bounds, tuple(files[i].path.name for i in index), m,
+                            params.reconstruction, left_out)
+    write_json_atomic(out / "transforms_train.json", doc.to_json())
+    save_sensor(sensor, out / "sensor")
+    write_bytes_atomic(out / CONFIG_YAML, spikecv_config(spike, [v.name + ".dat" for v in views]).encode())
+    write_manifest(out, params.to_json(), params.seed)
+
+
+def _remove_unregistered(folder: Path, registered: list[int], count: int) -> None:
+    """Remove the files of views that are not in the dataset (a rerun makes and removes them again)."""
+    for i in sorted(set(range(count)) - set(registered)):
+        for ext in (".dat", ".png"):
+            (folder / f"r_{i}{ext}").unlink(missing_ok=True)
+
+
+# ---------------------------------------------------------------------- checking poses against a known truth
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """``(s, R [3, 3], t [3])`` minimising ``sum |dst - (s R src + t)|^2`` over points ``[n, 3]``
+    (Umeyama 1991: least-squares similarity, reflection excluded)."""
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    a, b = src - mu_s, dst - mu_d
+    u, sig, vt = np.linalg.svd(b.T @ a / len(src))
+    d = np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0])
+    rot = u @ d @ vt
+    scale = float(np.trace(np.diag(sig) @ d) / max((a ** 2).sum() / len(src), 1e-300))
+    return scale, rot, mu_d - scale * rot @ mu_s
+
+
+def pose_errors(c2w_est: np.ndarray, c2w_true: np.ndarray) -> dict:
+    """Errors of estimated camera-to-world poses ``[n, 4, 4]`` against the true ones after the
+    similarity that best maps the estimated camera centres onto the true ones: per view the
+    rotation error (degrees) and the centre error as a fraction of the rig's extent (the largest
+    distance between two true camera centres). ``rotation_own_deg``: the rotation error after the
+    rotation that best maps the estimated orientations onto the true ones instead (the centres of a
+    flat handheld patch fix the alignment's tilt poorly; this measures the orientations alone)."""
+    s, rot, t = umeyama(c2w_est[:, :3, 3], c2w_true[:, :3, 3])
+    centres = c2w_est[:, :3, 3] @ (s * rot).T + t
+    extent = max(float(np.max(np.linalg.norm(c2w_true[:, None, :3, 3] - c2w_true[None, :, :3, 3], axis=2))), 1e-12)
+    u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", c2w_true[:, :3, :3], c2w_est[:, :3, :3]))
+    own = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt  # best rotation of the orientations
+    return {"rotation_deg": _angle_deg(c2w_true, rot, c2w_est), "rotation_own_deg": _angle_deg(c2w_true, own, c2w_est),
+            "centre_frac": np.linalg.norm(centres - c2w_true[:, :3, 3], axis=1) / extent, "extent": extent}
+
+
+def _angle_deg(c2w_true: np.ndarray, rot: np.ndarray, c2w_est: np.ndarray) -> np.ndarray:
+    """Angle (degrees) of ``R_true^T rot R_est`` for each view."""
+    rel = np.einsum("nji,jk,nkl->nil", c2w_true[:, :3, :3], rot, c2w_est[:, :3, :3])
+    return np.degrees(np.arccos(np.clip((np.trace(rel, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))

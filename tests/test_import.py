@@ -1,0 +1,259 @@
+"""`spikegen import` (real captures -> dataset folders) and the handheld rig whose truth is known."""
+import json
+import sys
+
+import numpy as np
+import pytest
+
+from spikegen import camera as cm
+from spikegen import importer as im
+from spikegen.cli import main as cli_main
+from spikegen.formats import HEADER_DEFAULTS, RenderJob
+from spikegen.spikeio import encode_dat, write_npz
+
+
+def run(argv, capsys):
+    capsys.readouterr()
+    code = cli_main([str(a) for a in argv])
+    cap = capsys.readouterr()
+    return code, cap.out, cap.err
+
+
+def stream(t=8, h=4, w=8, seed=0):
+    return (np.random.default_rng(seed).random((t, h, w)) < 0.3).astype(np.uint8)
+
+
+# ---------------------------------------------------------------------- reading captures
+def test_dat_with_a_row_header_is_read_without_it(tmp_path):
+    s = stream(t=5, h=4, w=24)  # 5 frames of 40 x 4 are not a whole number of 24 x 4 frames
+    header = np.ones((5, 4, im.HEADER_COLUMNS), np.uint8)  # 16 leading columns per row, as a camera writes
+    (tmp_path / "v0.dat").write_bytes(encode_dat(np.concatenate([header, s], axis=2)))
+    (tmp_path / "v1.dat").write_bytes(encode_dat(s))
+    files = im.list_capture(tmp_path, (24, 4))
+    assert [f.header_columns for f in files] == [im.HEADER_COLUMNS, 0]
+    for f in files:
+        assert np.array_equal(im.read_view(f, (24, 4), 5), s)
+    assert np.array_equal(im.read_view(files[0], (24, 4), 2), s[:2])  # --frames: the first N
+
+
+def test_a_size_both_layouts_fit_is_told_apart_by_the_pixels(tmp_path):
+    y, x = np.mgrid[0:250, 0:400]
+    scene = 0.1 + 0.8 * np.exp(-((x - 150.0) ** 2 + (y - 120.0) ** 2) / 3000.0) * (x % 40 < 30)
+    s = (np.random.default_rng(5).random((25, 250, 400)) < scene).astype(np.uint8)
+    header = np.zeros((25, 250, im.HEADER_COLUMNS), np.uint8)
+    data = encode_dat(np.concatenate([header, s], axis=2))
+    assert len(data) % (400 * 250 // 8) == 0  # 25 frames of 416 x 250 are also 26 frames of 400 x 250
+    (tmp_path / "a.dat").write_bytes(data)
+    (tmp_path / "b.dat").write_bytes(encode_dat(np.concatenate([s, s[:1]])))  # 26 plain frames
+    a, b = im.list_capture(tmp_path, (400, 250))
+    assert (a.header_columns, a.frames, b.header_columns, b.frames) == (im.HEADER_COLUMNS, 25, 0, 26)
+    assert np.array_equal(im.read_view(a, (400, 250), 25), s)
+
+
+def test_files_in_natural_order_and_npz_read(tmp_path):
+    for name in ("v10.npz", "v2.npz", "v1.dat"):
+        s = stream(seed=len(name))
+        (tmp_path / name).write_bytes(encode_dat(s)) if name.endswith(".dat") else write_npz(tmp_path / name, s)
+    (tmp_path / "notes.txt").write_text("not a spike file")
+    assert [f.path.name for f in im.list_capture(tmp_path, (8, 4))] == ["v1.dat", "v2.npz", "v10.npz"]
+
+
+def _capture(tmp_path, files):
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    for name, data in files.items():
+        (cap / name).write_bytes(data)
+    return cap
+
+
+BAD = {
+    "no_folder": ({}, "no such folder"),
+    "no_spike_files": ({"a.txt": b"x"}, "no spike files"),
+    "truncated_dat": ({"a.dat": encode_dat(stream())[:-3]}, "not a whole number"),
+    "empty_dat": ({"a.dat": b""}, "0 bytes"),
+    "unreadable_npz": ({"a.npz": b"not a zip"}, "not a readable .npz"),
+}
+
+
+@pytest.mark.parametrize("case", sorted(BAD))
+def test_bad_capture_is_one_line_and_writes_nothing(tmp_path, capsys, case):
+    files, expected = BAD[case]
+    cap = _capture(tmp_path, files) if case != "no_folder" else tmp_path / "missing"
+    out = tmp_path / "ds"
+    code, _, err = run(["import", cap, "--size", "8x4", "--out", out], capsys)
+    assert code != 0 and expected in err and len(err.strip().splitlines()) == 1 and "Traceback" not in err
+    assert not out.exists()
+
+
+def test_mixed_sizes_and_too_few_frames_refused(tmp_path, capsys):
+    cap = tmp_path / "cap"
+    cap.mkdir()
+    write_npz(cap / "a.npz", stream(h=4, w=8))
+    write_npz(cap / "b.npz", stream(h=8, w=8))
+    code, _, err = run(["import", cap, "--size", "8x4", "--out", tmp_path / "ds"], capsys)
+    assert code != 0 and "b.npz: stream is 8x8" in err and not (tmp_path / "ds").exists()
+    (cap / "b.npz").unlink()
+    code, _, err = run(["import", cap, "--size", "8x4", "--frames", "9", "--out", tmp_path / "ds"], capsys)
+    assert code != 0 and "fewer than --frames 9" in err and not (tmp_path / "ds").exists()
+
+
+def test_missing_pycolmap_is_one_clear_line(tmp_path, capsys, monkeypatch):
+    cap = _capture(tmp_path, {"a.dat": encode_dat(stream())})
+    monkeypatch.setitem(sys.modules, "pycolmap", None)  # import pycolmap raises ImportError
+    code, _, err = run(["import", cap, "--size", "8x4", "--out", tmp_path / "ds"], capsys)
+    assert code != 0 and "pip install" in err and "real" in err and not (tmp_path / "ds").exists()
+
+
+def test_view_image_removes_the_fixed_pattern():
+    from spikegen.sensor import Sensor
+
+    resp = np.where(np.arange(16)[None, :] % 2 == 0, 0.5, 1.5).repeat(8, axis=0).astype(np.float32)
+    flat = np.full((8, 16), 0.2, np.float32)
+    img = im.view_image(flat * resp, Sensor(name="cal", responsivity=resp, dark_rate=np.zeros_like(resp)))
+    assert img.dtype == np.uint8 and img.min() == img.max() == 255
+    assert len(np.unique(im.view_image(flat * resp, Sensor(name="ideal")))) == 2
+
+
+# ---------------------------------------------------------------------- poses
+def _random_similarity(rng):
+    q, _ = np.linalg.qr(rng.standard_normal((3, 3)))
+    q *= np.sign(np.linalg.det(q))
+    return 2.5, q, rng.standard_normal(3)
+
+
+def test_umeyama_and_pose_errors_recover_a_known_similarity():
+    rng = np.random.default_rng(1)
+    truth = np.stack([v.pose for v in cm.make_handheld_views("train", 12, subframes=1)])
+    s, rot, t = _random_similarity(rng)
+    est = truth.copy()  # the truth seen in another frame: est = inverse similarity of truth
+    est[:, :3, 3] = (truth[:, :3, 3] - t) @ rot / s
+    est[:, :3, :3] = rot.T @ truth[:, :3, :3]
+    s2, rot2, t2 = im.umeyama(est[:, :3, 3], truth[:, :3, 3])
+    assert np.isclose(s2, s) and np.allclose(rot2, rot) and np.allclose(t2, t)
+    err = im.pose_errors(est, truth)
+    assert err["rotation_deg"].max() < 1e-5 and err["centre_frac"].max() < 1e-9
+    est[0, :3, 3] += 0.1 * err["extent"] / s  # one camera off by 10 % of the rig's extent
+    off = im.pose_errors(est, truth)["centre_frac"]  # the alignment spreads some of it over the others
+    assert np.argmax(off) == 0 and 0.05 < off[0] < 0.15 and np.median(off) < 0.05
+
+
+def test_normalisation_centres_scales_and_keeps_poses_rigid():
+    rng = np.random.default_rng(2)
+    truth = np.stack([v.pose for v in cm.make_handheld_views("train", 9, subframes=1)])
+    pts = (rng.random((200, 3)) - 0.5) * 2.0
+    m = im.normalise(truth, (pts,))
+    poses = im.apply_normalisation(m, truth)
+    assert np.allclose(poses[:, :3, 3].mean(axis=0), 0.0, atol=1e-12)
+    assert np.allclose(np.einsum("nji,njk->nik", poses[:, :3, :3], poses[:, :3, :3]), np.eye(3), atol=1e-12)
+    moved = pts @ m[:3, :3].T + m[:3, 3]
+    assert np.percentile(np.linalg.norm(moved, axis=1), 99.0) <= 1.0 + 1e-9
+    up = poses[:, :3, 1].mean(axis=0)
+    assert np.allclose(up / np.linalg.norm(up), [0, 0, 1], atol=1e-9)  # +Z: the cameras' mean up
+    near, far = im.view_bounds(poses[0], pts, m)
+    assert 0 < near < far
+
+
+# ---------------------------------------------------------------------- the handheld rig
+def test_handheld_rig_is_a_jittered_forward_facing_patch():
+    views = cm.make_handheld_rig(subframes=4, motion_deg=1.0, seed=3)
+    train = views["train"]
+    assert len(train) == 35 and not views["val"] and not views["test"]
+    again = cm.make_handheld_rig(subframes=4, motion_deg=1.0, seed=3)["train"]
+    assert all(np.array_equal(a.subframe_poses, b.subframe_poses) for a, b in zip(train, again))
+    centres = np.stack([v.pose[:3, 3] for v in train])
+    assert np.allclose(np.linalg.norm(centres, axis=1), cm.RADIUS, atol=0.1)  # on a small patch at distance d
+    assert np.ptp(centres, axis=0).max() <= max(cm.HANDHELD_PATCH) * 1.1
+    for v in train:
+        forward = -v.pose[:3, 2]
+        to_origin = -v.pose[:3, 3] / np.linalg.norm(v.pose[:3, 3])
+        assert 0.0 < np.degrees(np.arccos(np.clip(forward @ to_origin, -1, 1))) < 5 * cm.HANDHELD_TILT_DEG
+        drift = v.subframe_poses[-1, :3, 3] - v.subframe_poses[0, :3, 3]
+        assert np.isclose(np.linalg.norm(drift), cm.RADIUS * np.radians(1.0) * 3 / 4)  # times 0.125 .. 0.875
+        assert np.allclose(v.subframe_poses[:, :3, :3], v.pose[:3, :3])  # orientation held
+    other = cm.make_handheld_rig(subframes=4, seed=4)["train"]
+    assert not np.allclose(other[0].pose, train[0].pose)
+
+
+def test_render_job_records_its_rig_and_resume_refuses_another():
+    old = RenderJob("lego", 64, 40, (3, 0, 0)).header()
+    assert old["rig"] == "nerf" and HEADER_DEFAULTS["rig"] == "nerf"
+    hand = RenderJob("lego", 64, 40, (3, 0, 0), rig="handheld")
+    assert hand.differences(old) == ["rig"]
+    legacy = {k: v for k, v in old.items() if k != "rig"}  # a render.json written before the key existed
+    assert RenderJob("lego", 64, 40, (3, 0, 0)).differences(legacy) == []
+    assert RenderJob("lego", 64, 40, (3, 0, 0), rig="orbit").validate()
+
+
+def test_render_resume_refuses_a_folder_of_another_rig(tmp_path):
+    from spikegen.errors import OutputError
+    from spikegen.render import RenderFolder, rig_of
+
+    job = RenderJob("lego", 64, 40, (3, 0, 0), subframes=2, rig="handheld")
+    folder = RenderFolder.open(tmp_path, job)
+    folder.path.mkdir(parents=True)
+    folder.write_json()
+    assert json.loads((folder.path / "render.json").read_text())["rig"] == "handheld"
+    with pytest.raises(OutputError, match="rig"):
+        RenderFolder.open(tmp_path, RenderJob("lego", 64, 40, (3, 0, 0), subframes=2))
+    assert len(rig_of(job)["train"]) == 3 and rig_of(job)["train"][0].pose[2, 3] > 1.0  # above the ground
+
+
+# ---------------------------------------------------------------------- end to end (Blender + pycolmap)
+@pytest.fixture(scope="module")
+def handheld_capture(tmp_path_factory):
+    """A small handheld capture rendered through Blender: 320 x 200, 12 views, 400 frames."""
+    pytest.importorskip("bpy")
+    pytest.importorskip("pycolmap")
+    out = tmp_path_factory.mktemp("hh")
+    code = cli_main(["render", "--scene", "lego", "--rig", "handheld", "--resolution", "320x200", "--views",
+                     "12,0,0", "--subframes", "2", "--frames", "400", "--samples", "2", "--png-samples", "2",
+                     "--intensity", "64", "--sensor", "calibrated", "--out", str(out), "--device", "cpu"])
+    assert code == 0
+    return out
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_import_recovers_the_handheld_poses(handheld_capture, tmp_path, capsys):
+    cap = handheld_capture / "lego_i64" / "train"
+    out = tmp_path / "ds"
+    code, stdout, err = run(["import", cap, "--size", "320x200", "--out", out], capsys)
+    assert code == 0, err
+    doc = json.loads((out / "transforms_train.json").read_text())
+    assert doc["poses_from"] == "colmap" and doc["spike"].get("background") is None
+    assert all(f["image_kind"] == "reconstruction" and 0 < f["near"] < f["far"] for f in doc["frames"])
+    truth = json.loads((handheld_capture / "lego_render" / "render.json").read_text())["splits"]["train"]
+    index = [int(f["source_file"][2:-4]) for f in doc["frames"]]
+    assert len(index) + len(doc["unregistered"]) == 12 and len(index) >= 10
+    err = im.pose_errors(np.array([f["transform_matrix"] for f in doc["frames"]]),
+                         np.array([truth[i]["transform_matrix"] for i in index]))
+    # a 12-view patch at 320 x 200 (measured: orientations 0.37 deg, centres 3.8 % of the extent;
+    # the full-size figures are bench/bench_import.py's): loose bounds that a wrong axis or sign breaks
+    assert np.median(err["rotation_own_deg"]) < 1.0 and np.median(err["centre_frac"]) < 0.10
+    assert abs(doc["fl_x"] / cm.focal_px(320) - 1) < 0.08  # the renderer's focal length, found by SfM
+    assert np.isclose(doc["camera_angle_x"], 2 * np.arctan(320 / (2 * doc["fl_x"])))
+    from spikenerf.data import load_dataset
+
+    assert len(load_dataset(out).splits["train"]) >= 7  # the trainer reads it (every 8th view held out)
+    first = (out / "manifest.json").read_bytes()
+    assert run(["verify", out], capsys)[0] == 0
+
+
+@pytest.mark.blender
+@pytest.mark.slow
+def test_an_interrupted_import_resumes_to_the_same_bytes(handheld_capture, tmp_path, capsys, monkeypatch):
+    cap, size = handheld_capture / "lego_i64" / "train", "320x200"
+    assert run(["import", cap, "--size", size, "--out", tmp_path / "a"], capsys)[0] == 0
+    sfm = im.run_sfm
+
+    def killed(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(im, "run_sfm", killed)  # Ctrl-C once every view's files are written
+    code, _, err = run(["import", cap, "--size", size, "--out", tmp_path / "b"], capsys)
+    assert code == 130 and not (tmp_path / "b" / "manifest.json").exists()
+    monkeypatch.setattr(im, "run_sfm", sfm)
+    (tmp_path / "b" / "train" / "r_3.png").unlink()  # as if killed while writing it
+    assert run(["import", cap, "--size", size, "--out", tmp_path / "b"], capsys)[0] == 0
+    assert (tmp_path / "b" / "manifest.json").read_bytes() == (tmp_path / "a" / "manifest.json").read_bytes()
+    assert run(["verify", tmp_path / "b"], capsys)[0] == 0
