@@ -8,11 +8,17 @@ Prints, for synthetic but realistic inputs (points along rays, as the renderer m
    when ``M * 64 >= grid values``; the table shows the break-even that rule stands for.
 2. ``candidates``: making the packed samples of 2048 rays (``render._occupied_samples``) for a
    field that fills its box (a hazy baseline) and for a compact object, gather vs broadcast.
+3. ``grid step``: the parts of a training step that scale with the grid, at the 400 x 400 grid
+   (256^3 x 2 + SH 128^3 x 3) and the 100 x 100 one (128^3), dense (grid_sample, autograd's
+   dense gradients, fused torch Adam, max-pooled occupancy: the trainer before issue 13; it
+   keeps all but the occupancy by default) against sparse (corner gather, the opt-in
+   LazyGridAdam, threshold + separable dilation).
 
 Usage::
 
     python bench/bench_trainer_step.py            # the tables (a few seconds on 2 cores)
     python bench/bench_trainer_step.py --reps 15  # steadier medians
+    python bench/bench_trainer_step.py --only grid-step  # just table 3
 """
 from __future__ import annotations
 
@@ -21,10 +27,12 @@ import statistics
 import time
 
 import torch
+import torch.nn.functional as F
 
 from spikegen.camera import focal_px
 from spikenerf import model as M
 from spikenerf import render as R
+from spikenerf.optim import LazyGridAdam
 
 
 def _median_ms(fn, reps: int) -> float:
@@ -92,12 +100,77 @@ def candidates_table(reps: int) -> None:
         print(f"{name:>28} {n / 2048:>11.1f} {t_gather:>7.1f} {t_now:>8.1f}")
 
 
+def _step_parts(G: int, sparse: bool, points: int, reps: int) -> dict:
+    """Median ms of each grid-sized part of a step for a ``G^3`` field with degree-1 SH."""
+    gen = torch.Generator().manual_seed(2)
+    f = M.GridField(grid_size=G, final_size=G, sh_degree=1)
+    with torch.no_grad():
+        f.grid.normal_(generator=gen)
+        f.grid[0, 0] -= 6  # a sparse occupancy, as a trained object
+    o = torch.rand(points // 100, 1, 3, generator=gen) * 1.2 - 0.6  # points along rays, half a voxel apart
+    d = torch.nn.functional.normalize(torch.randn(points // 100, 1, 3, generator=gen), dim=-1)
+    pts = (o + d * torch.arange(100)[None, :, None] * (f.voxel / 2)).reshape(-1, 3).clamp(-1.4, 1.4)
+    dirs = d.expand(-1, 100, -1).reshape(-1, 3)
+    if sparse:
+        opt = LazyGridAdam(f, 0.1, 1e-3)  # the optimiser sets nothing on the field: sparse mode is set here
+        f.sparse = True
+    else:
+        opt = torch.optim.Adam(f.grids(), lr=0.1, betas=(0.9, 0.99), fused=True)
+
+    def sample():
+        opt.zero_grad(set_to_none=True)
+        sigma, x = f.query(pts, dirs)
+        (sigma.mean() + x.mean()).backward()
+
+    def tv():
+        f.tv_loss(gen).backward()
+
+    def occupancy():
+        if sparse:
+            f.update_occupancy(0.02)
+            return
+        with torch.no_grad():  # the trainer's update before this change
+            alpha = 1 - torch.exp(-F.softplus(f.grid[0, 0] + f.shift) * f.step_ratio * f.voxel / f.ref_voxel)
+            f.occupancy = F.max_pool3d(alpha[None, None], kernel_size=3, stride=1, padding=1)[0, 0] > 0.02
+
+    out = _sample_then_step_ms(sample, opt, reps)
+    out["TV fwd+bwd"] = _median_ms(lambda: (opt.zero_grad(), tv(), f.tape.clear()), reps)
+    out["occupancy / 50"] = _median_ms(occupancy, max(1, reps // 3)) / 50  # it runs every 50 iterations
+    return out
+
+
+def _sample_then_step_ms(sample, opt, reps: int) -> dict:
+    """Median ms of ``sample()`` and of the optimiser step that follows it."""
+    sample_ms, step_ms = [], []
+    for _ in range(reps + 1):  # the first is a warm-up
+        t0 = time.perf_counter()
+        sample()
+        t1 = time.perf_counter()
+        opt.step()
+        sample_ms.append(1000 * (t1 - t0))
+        step_ms.append(1000 * (time.perf_counter() - t1))
+    return {"sample fwd+bwd": statistics.median(sample_ms[1:]), "Adam step": statistics.median(step_ms[1:])}
+
+
+def grid_step_table(reps: int, points: int = 100_000) -> None:
+    print(f"\ngrid-sized parts of a step, {points} points, median of {reps} (ms)")
+    rows = {(G, sp): _step_parts(G, sp, points, reps) for G in (128, 256) for sp in (False, True)}
+    parts = list(next(iter(rows.values())))
+    print(f"{'part':>16} " + " ".join(f"{f'{G}^3 ' + ('sparse' if sp else 'dense'):>14}" for G, sp in rows))
+    for part in parts + ["sum"]:
+        vals = [sum(r.values()) if part == "sum" else r[part] for r in rows.values()]
+        print(f"{part:>16} " + " ".join(f"{v:>14.1f}" for v in vals))
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reps", type=int, default=7)
+    ap.add_argument("--only", choices=["trilinear", "candidates", "grid-step"], default=None)
     args = ap.parse_args()
-    trilinear_table(args.reps)
-    candidates_table(args.reps)
+    tables = {"trilinear": trilinear_table, "candidates": candidates_table, "grid-step": grid_step_table}
+    for name, table in tables.items():
+        if args.only in (None, name):
+            table(args.reps)
 
 
 if __name__ == "__main__":

@@ -177,3 +177,40 @@ def test_a_split_whose_spike_block_disagrees_is_refused(dataset, tmp_path):
     _edit(ds / "transforms_test.json", lambda d: d["spike"].update(width=8, height=32))
     with pytest.raises(InputError, match="transforms_test.json: spike block says 16 frames of 8x32"):
         load_dataset(ds)
+
+
+def test_a_val_split_is_the_held_out_set_when_there_is_no_test_split(tmp_path):
+    """As NeRF papers report: train on every train view, evaluate on views never trained on."""
+    from spikenerf.data import load_dataset
+
+    src = make_nerf(tmp_path / "src" / "tv", views=9, size=16, seed=2, splits=("train", "val"))
+    ds = load_dataset(convert(src, tmp_path / "out", [32], sensor="ideal", frames=8, progress=False)[0])
+    assert ds.heldout == "val" and not ds.holdout
+    assert len(ds.splits["train"]) == 9 and [v.name for v in ds.splits["test"]] == [f"val/r_{i}" for i in range(9)]
+    only_train = make_nerf(tmp_path / "src" / "t", views=9, size=16, seed=2)
+    ds = load_dataset(convert(only_train, tmp_path / "out", [32], sensor="ideal", frames=8, progress=False)[0])
+    assert ds.heldout == "train every 8th" and [v.name for v in ds.splits["test"]] == ["train/r_0", "train/r_8"]
+    assert len(ds.splits["train"]) == 7
+
+
+def test_training_with_calibrated_maps_uses_them_and_a_bad_file_is_one_line(dataset, tmp_path):
+    pytest.importorskip("torch")
+    from click.testing import CliRunner
+
+    from spikegen.sensor import Sensor
+    from spikegen.sensorfile import save_sensor
+    from spikenerf.cli import main
+    from spikenerf.data import load_dataset, load_sensor_maps
+
+    resp = np.full((16, 16), 1.25)
+    json_path, _ = save_sensor(Sensor("cal", responsivity=resp, dark_rate=np.full((16, 16), 0.01)), tmp_path / "cal")
+    maps = load_sensor_maps(load_dataset(dataset), str(json_path))
+    assert np.allclose(maps.resp, 1.25) and np.allclose(maps.dark, 0.01) and maps.kind == "if"
+    run = tmp_path / "run"
+    res = CliRunner().invoke(main, ["train", str(dataset), "--iters", "2", "--out", str(run), "--quiet",
+                                    "--sensor-maps", str(json_path), "--batch-rays", "64"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "config.json").read_text())["sensor_maps"] == str(json_path.resolve())
+    res = CliRunner().invoke(main, ["train", str(dataset), "--iters", "2", "--out", str(tmp_path / "bad"),
+                                    "--quiet", "--sensor-maps", str(tmp_path / "none.json")])
+    assert res.exit_code == 2 and "none.json" in res.output and not (tmp_path / "bad").exists()

@@ -31,11 +31,33 @@ def test_bpy_only_in_the_renderer_and_the_addon():
     assert bad == []
 
 
+def _module_level_imports(tree):
+    """Import nodes not inside a function (module level, or under a top-level if/try/with)."""
+    stack = list(ast.iter_child_nodes(tree))
+    while stack:
+        node = stack.pop()
+        if isinstance(node, (ast.FunctionDef, ast.AsyncFunctionDef, ast.Lambda)):
+            continue
+        if isinstance(node, (ast.Import, ast.ImportFrom)):
+            yield node
+        stack.extend(ast.iter_child_nodes(node))
+
+
 def test_bpy_is_imported_lazily_in_the_renderer():
-    p = REPO / "generator" / "spikegen" / "render_blender.py"
-    if p.exists():
-        top = [m for m, node in _imports(p) if node.col_offset == 0]
-        assert "bpy" not in top
+    """Every generator module that imports bpy (there must be one: the renderer) does so only
+    inside functions, so importing it never needs Blender."""
+    users = [p for p in (REPO / "generator").rglob("*.py") if any(m == "bpy" for m, _ in _imports(p))]
+    assert users, "no generator module imports bpy: the renderer is gone or renamed"
+    for p in users:
+        eager = [node.lineno for node in _module_level_imports(ast.parse(p.read_text()))
+                 if any(name == "bpy" for name in _names(node))]
+        assert eager == [], f"{p}: bpy imported at module level (lines {eager})"
+
+
+def _names(node):
+    if isinstance(node, ast.Import):
+        return [a.name.split(".")[0] for a in node.names]
+    return [node.module.split(".")[0]] if node.module and node.level == 0 else []
 
 
 def test_cli_starts_without_bpy_or_torch():

@@ -72,14 +72,17 @@ def test_train_and_eval_learn_the_sphere(dataset, tmp_path):
     res = CliRunner().invoke(main, ["train", str(dataset), "--iters", "150", "--device", "cpu", "--out", str(run),
                                     "--batch-rays", "512", "--quiet"])
     assert res.exit_code == 0, res.output
-    assert "holding out every 8th train view" in res.output
+    assert "no test split; evaluating on train every 8th (2 views)" in res.output
     res = CliRunner().invoke(main, ["eval", str(run), "--quiet"])
     assert res.exit_code == 0, res.output
     m = json.loads((run / "metrics.json").read_text())
     for key in ("split", "views", "psnr", "ssim", "lpips", "psnr_object", "ssim_object", "lpips_object",
-                "train_seconds"):
+                "psnr_object50", "ssim_object50", "psnr_background", "ssim_background", "train_seconds"):
         assert key in m
-    assert m["split"] == "test" and m["views"] == 2
+    assert m["split"] == "test" and m["views"] == 2 and m["views_from"] == "train every 8th"
+    assert [r["view"] for r in m["per_view"]] == ["train/r_0", "train/r_8"]
+    assert m["psnr"] == pytest.approx(np.mean([r["psnr"] for r in m["per_view"]]))
+    assert m["psnr_object50"] != m["psnr_object"] and m["psnr_background"] > m["psnr_object"]
     assert m["psnr"] > 22 and m["ssim"] > 0.8, m  # a blank white image scores about 9 dB here
     assert (run / "eval_test" / "train_r_0_gt_vs_pred.png").is_file()
     cfg = json.loads((run / "config.json").read_text())

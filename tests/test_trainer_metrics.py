@@ -1,4 +1,7 @@
-"""PSNR / SSIM as NeRF papers compute them."""
+"""PSNR / SSIM as NeRF papers compute them; LPIPS only when its package and weights are there."""
+import sys
+import types
+
 import numpy as np
 import pytest
 
@@ -41,6 +44,42 @@ def test_ssim_matches_reference_formula_on_constant_images():
     assert ssim(a, b) == pytest.approx(expected, rel=1e-9)
 
 
-def test_lpips_reports_why_it_is_missing():
+def test_lpips_without_the_package_says_so(monkeypatch):
+    monkeypatch.setitem(sys.modules, "lpips", None)  # "import lpips" then raises ImportError
     lp = Lpips()
-    assert lp.available or "lpips" in lp.reason
+    assert not lp.available
+    assert lp.reason.startswith("the lpips package is not installed")
+
+
+def _fake_lpips(monkeypatch, make_net):
+    fake = types.ModuleType("lpips")
+    fake.LPIPS = make_net
+    monkeypatch.setitem(sys.modules, "lpips", fake)
+
+
+def test_lpips_without_weights_names_the_failure(monkeypatch):
+    def no_weights(**kwargs):
+        raise FileNotFoundError("alex.pth")
+
+    _fake_lpips(monkeypatch, no_weights)
+    lp = Lpips()
+    assert not lp.available
+    assert lp.reason == "lpips weights not available locally (FileNotFoundError)"
+
+
+def test_lpips_feeds_the_network_three_channels_in_minus_one_to_one(monkeypatch):
+    seen = []
+
+    def net(a, b):
+        seen.append((a.shape, float(a.min()), float(a.max())))
+        return (a - b).abs().mean()
+
+    _fake_lpips(monkeypatch, lambda **kwargs: net)
+    lp = Lpips()
+    assert lp.available
+    pred, gt = np.full((6, 8), 0.75), np.zeros((6, 8))
+    assert lp(pred, gt) == pytest.approx(1.5)  # 0.75 -> 0.5 against 0 -> -1
+    assert seen[0] == ((1, 3, 6, 8), 0.5, 0.5)
+    mask = np.zeros((6, 8), bool)
+    mask[:3] = True  # outside the mask both images become 0 -> -1
+    assert lp(pred, gt, mask) == pytest.approx(0.75)

@@ -69,14 +69,15 @@ def render(scene, intensities, out_dir, resolution, views, subframes, frames, mo
     if msgs:
         raise InputError(msgs[0])
     levels = [float(i) for i in intensities]
-    job = _with_device(job, device, gpu_index)
+    notes = []
+    job = _with_device(job, device, gpu_index, notes.append)
     client = None
     if scheduler is not None:  # connect before rendering: a bad address fails in seconds, not hours
         from .parallel import connect
 
         client = connect(scheduler)
     try:
-        folder = run_render(job, out_dir, blend, gpu_index)
+        folder = run_render(job, out_dir, blend, gpu_index, notes)
         for f in convert_all(folder, out_dir, levels, sensor=sensor, seed=seed, workers=workers, scheduler=client,
                              progress=True):
             click.echo(str(f))
@@ -101,13 +102,14 @@ def _default_views(rig: str, quick: bool) -> tuple:
     return QUICK["views"] if quick else (100, 100, 200)
 
 
-def _with_device(job: RenderJob, device: str, gpu_index) -> RenderJob:
-    """The job with its Cycles device resolved (before anything is rendered)."""
+def _with_device(job: RenderJob, device: str, gpu_index, note) -> RenderJob:
+    """The job with its Cycles device resolved (before anything is rendered); a fallback to the CPU
+    is passed to ``note`` (said when rendering starts, so that bad input still gets one line)."""
     if job.engine != "cycles":
         return job
     from .render_blender import resolve_device
 
-    resolved = resolve_device(device, log=lambda m: click.echo(m, err=True))
+    resolved = resolve_device(device, log=note)
     if gpu_index is not None and resolved == "cpu":
         raise InputError("--gpu-index: rendering on the CPU (no GPU backend found); leave it out or use --device gpu")
     return dataclasses.replace(job, device=resolved)
@@ -128,8 +130,9 @@ def _scene_name(scene, blend) -> tuple[str, str]:
     return scene, "builtin"
 
 
-def run_render(job: RenderJob, out_dir, blend=None, gpu_index: int | None = None) -> RenderFolder:
-    """Render every missing view of ``job`` into ``<out_dir>/<scene>_render`` with a progress bar.
+def run_render(job: RenderJob, out_dir, blend=None, gpu_index: int | None = None, notes=()) -> RenderFolder:
+    """Render every missing view of ``job`` into ``<out_dir>/<scene>_render`` with a progress bar
+    (``notes``: lines said on stderr once rendering starts).
 
     Ctrl-C (or SIGTERM) stops after the image being rendered: that view's files are removed,
     finished views stay, and rerunning the command resumes.
@@ -147,6 +150,8 @@ def run_render(job: RenderJob, out_dir, blend=None, gpu_index: int | None = None
     if not pending:
         return folder
     renderer = renderer or renderer_for(job, blend, gpu_index=gpu_index)
+    for line in notes:
+        click.echo(line, err=True)
     steps = render_steps(folder, renderer)
     with StopRequest() as stop, tqdm(total=len(pending) * images_per_view(job), desc=f"render {job.scene}",
                                      unit="img") as bar:

@@ -559,7 +559,7 @@ def _frame_radiance(x, r0, r1, T, sensor: Sensor) -> np.ndarray:
     if sensor.gamma != 1.0:
         np.power(xt, sensor.gamma, out=xt)
     if sensor.crosstalk_fraction > 0:
-        xt = crosstalk(xt, sensor.crosstalk_fraction, top_edge=(h0 == 0), bottom_edge=(h1 == H))
+        xt = crosstalk(xt, sensor.crosstalk_fraction)
         xt = xt[:, r0 - h0: r0 - h0 + (r1 - r0)]
     if sensor.flicker_depth > 0:
         t = np.arange(T, dtype=np.float64)
@@ -583,12 +583,11 @@ def neighbour_mean(x: np.ndarray) -> np.ndarray:
     return np.where(count == 0, x, total / np.maximum(count, 1))
 
 
-def crosstalk(xt: np.ndarray, fraction: float, top_edge=True, bottom_edge=True) -> np.ndarray:
+def crosstalk(xt: np.ndarray, fraction: float) -> np.ndarray:
     """``X' = (1 - c) X + c * mean of the 4 neighbours`` on ``[..., H, W]``.
 
-    At the image border the missing neighbours are left out of the mean. ``top_edge`` /
-    ``bottom_edge`` say whether the first / last row is the image border (False when the
-    array is a block with a one-row halo, whose halo rows are then not valid outputs).
+    Neighbours outside the array are left out of the mean. On a block of rows with a one-row
+    halo the halo rows' own outputs are therefore not valid: the caller drops them.
     """
     return (1.0 - fraction) * xt + fraction * neighbour_mean(xt)
 

@@ -1,4 +1,5 @@
-"""Command line: ``spikenerf train DATASET ...`` and ``spikenerf eval RUN`` (shared/specs/cli.md)."""
+"""Command line: ``spikenerf train DATASET ...``, ``spikenerf eval RUN`` and ``spikenerf render RUN``
+(shared/specs/cli.md)."""
 from __future__ import annotations
 
 import sys
@@ -34,12 +35,18 @@ def main():
 @main.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--method", default=DEFAULT_METHOD, show_default=True, type=click.Choice(list(METHODS)),
-              help="Supervision: the paper's, its ablation, the TFP/TFI baselines, or the project's best.")
+              help="Supervision: the published method, an idealised variant and its ablation, the TFP/TFI "
+                   "baselines, or the project's best.")
 @click.option("--iters", default=TrainConfig.iters, show_default=True, type=click.IntRange(min=1),
               help="Training iterations.")
 @click.option("--device", default="auto", show_default=True, type=click.Choice(["auto", "cpu", "cuda"]))
 @click.option("--resolution", default=0, type=click.IntRange(min=0),
               help="Train at this width (must divide the dataset's); 0 = the dataset's.")
+@click.option("--frames", default=None, type=int,
+              help="Train from the first W frames of each stream (1..the dataset's frames; default all).")
+@click.option("--sensor-maps", "sensor_maps", default="", type=click.Path(path_type=str),
+              help="Take R and the dark current from this sensor .json (e.g. from `spikegen calibrate`) instead of "
+                   "the dataset's own (true) maps.")
 @click.option("--out", "out", type=click.Path(path_type=Path), default=None,
               help="Run folder (default runs/<dataset>_<method>). An existing checkpoint there is resumed.")
 @click.option("--seed", default=TrainConfig.seed, show_default=True, type=int)
@@ -51,16 +58,17 @@ def main():
               help=f"Save a checkpoint every N iterations (and at least every {TrainConfig.checkpoint_every_s:g} s).")
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def train(dataset, method, iters, device, resolution, out, seed, batch_rays, sh_degree, checkpoint_every, do_eval,
-          quiet):
+def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, seed, batch_rays, sh_degree,
+          checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
 
     dataset = dataset.resolve()
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
-                      seed=seed, batch_rays=batch_rays, sh_degree=sh_degree,
-                      checkpoint_every=checkpoint_every)
+                      frames=frames, seed=seed, batch_rays=batch_rays, sh_degree=sh_degree,
+                      checkpoint_every=checkpoint_every, sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
+                      else "")
     ck = run_train(cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True))
     click.echo(f"checkpoint: {ck}")
     if do_eval:
@@ -75,6 +83,38 @@ def train(dataset, method, iters, device, resolution, out, seed, batch_rays, sh_
 def eval_cmd(run, split, device, quiet):
     """Render the held-out views of RUN and write RUN/metrics.json and images."""
     _eval(run, split, device, quiet)
+
+
+@main.command("render")
+@click.argument("run", type=click.Path(path_type=Path))
+@click.option("--path", "path_name", default="orbit", show_default=True, help="Camera path: orbit or spiral.")
+@click.option("--frames", default=60, show_default=True, type=int, help="Frames along the path (at least 1).")
+@click.option("--out", "out", type=click.Path(path_type=Path), required=True,
+              help="Animation to write: .gif (Pillow) or .mp4 (needs imageio-ffmpeg, the `video` extra).")
+@click.option("--fps", default=20.0, show_default=True, type=float, help="Frames per second (at most 100).")
+@click.option("--device", default="auto", show_default=True, help="auto, cpu or cuda.")
+@click.option("--quiet", is_flag=True, help="No progress bar.")
+def render_cmd(run, path_name, frames, out, fps, device, quiet):
+    """Render RUN's field along a camera path into an animation: luminance | depth | opacity.
+
+    \b
+    Depth (expected distance along the ray; light passing through counts as far) runs from yellow
+    at 2 to dark purple at 6 (NeRF-synthetic near, far); opacity from black (0) to white (1).
+    Every camera looks at the origin, world +Z up; frame k of N is at s = k / N; r is the median
+    distance of the dataset's training cameras from the origin (4.0311 for NeRF-synthetic).
+      orbit:  azimuth 360 s deg, elevation 30 deg, distance r (the NeRF-synthetic test circle)
+      spiral: azimuth 720 s deg (two turns), elevation 30 - 20 cos(2 pi s) deg (10 to 50 and
+              back), distance r (1 - 0.075 (1 - cos(2 pi s))) (r to 0.85 r and back)
+    """
+    from .video import render_video
+
+    try:
+        n = render_video(run, path_name, frames, out, fps=fps, device=device, progress=not quiet,
+                         log=lambda m: click.echo(m, err=True))
+    except KeyboardInterrupt:  # the animation is written under a temporary name: nothing is left
+        click.echo(f"interrupted; {out} not written", err=True)
+        sys.exit(130)
+    click.echo(f"{out}: {n} frames ({path_name}, {fps:g} fps)")
 
 
 def _eval(run, split, device, quiet):

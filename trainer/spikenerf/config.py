@@ -14,6 +14,8 @@ class TrainConfig:
     iters: int = 3000
     device: str = "auto"
     resolution: int = 0  # 0 = the dataset's
+    frames: int | None = None  # train from the first w frames of each stream; None = all (resolved when training)
+    sensor_maps: str = ""  # a sensor file whose R and dark current replace the dataset's (e.g. a calibration)
     seed: int = 0
     batch_rays: int = 2048
     lr_grid: float = 0.1

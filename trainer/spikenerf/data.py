@@ -20,7 +20,7 @@ from spikegen import spikeio
 from spikegen.errors import InputError
 from spikegen.formats import SpikeBlock, Transforms, ViewRecord, focal_px
 
-HOLDOUT_EVERY = 8  # without a test split, train views 0, 8, 16, ... are held out
+HOLDOUT_EVERY = 8  # without a test or val split, train views 0, 8, 16, ... are held out
 
 
 @dataclass
@@ -32,7 +32,8 @@ class Dataset:
     spike: SpikeBlock
     camera_angle_x: float
     splits: dict = field(default_factory=dict)  # split -> list[ViewRecord]
-    holdout: bool = False  # test views taken from train (every 8th)
+    holdout: bool = False  # test views taken from train (every 8th): the folder has neither test nor val
+    heldout: str = "test"  # where the evaluation views come from: "test", "val" or "train every 8th"
 
     height = property(lambda self: self.spike.height)
     width = property(lambda self: self.spike.width)
@@ -66,10 +67,7 @@ def load_dataset(root) -> Dataset:
                                  f"{doc.spike.height}, the train split {ds.frames} of {ds.width}x{ds.height}")
             ds.splits[split] = list(doc.frames)
     if not ds.splits.get("test"):
-        views = ds.splits["train"]
-        ds.splits["test"] = [v for i, v in enumerate(views) if i % HOLDOUT_EVERY == 0]
-        ds.splits["train"] = [v for i, v in enumerate(views) if i % HOLDOUT_EVERY != 0]
-        ds.holdout = True
+        _hold_out(ds)
     if not ds.splits["train"]:
         raise InputError(f"{train_json}: no training views")
     return ds
@@ -86,17 +84,35 @@ class SensorMaps:
     reset: str = "subtract"  # "subtract" or "zero"
 
 
-def load_sensor_maps(ds: Dataset) -> SensorMaps:
-    """The dataset's sensor at the dataset's size; the ideal sensor if it has no sensor.json."""
-    path = ds.root / "sensor.json"
-    if not path.is_file():
-        return SensorMaps(np.ones((ds.height, ds.width), np.float32), np.zeros((ds.height, ds.width), np.float32))
+def _hold_out(ds: Dataset) -> None:
+    """Evaluation views for a folder without a test split: its val split (views never trained
+    on, as NeRF papers report), else every 8th train view (taken out of training)."""
+    if ds.splits.get("val"):
+        ds.splits["test"], ds.heldout = ds.splits["val"], "val"
+        return
+    views = ds.splits["train"]
+    ds.splits["test"] = [v for i, v in enumerate(views) if i % HOLDOUT_EVERY == 0]
+    ds.splits["train"] = [v for i, v in enumerate(views) if i % HOLDOUT_EVERY != 0]
+    ds.holdout, ds.heldout = True, f"train every {HOLDOUT_EVERY}th"
+
+
+def load_sensor_maps(ds: Dataset, maps_file: str | None = None) -> SensorMaps:
+    """The dataset's sensor (``sensor.json``) at the dataset's size; the ideal sensor if it has none.
+
+    ``maps_file``: take R and the dark current from this sensor file instead (e.g. a calibration
+    from ``spikegen calibrate``: what a user of a real camera has in place of its true maps); the
+    rest of the model (kind, shot noise, reset) stays the dataset's."""
     from spikegen.sensorfile import load_sensor
 
-    sensor = load_sensor(path)
-    resp, dark = sensor.maps(ds.height, ds.width)
-    return SensorMaps(resp.astype(np.float32), dark.astype(np.float32), sensor.kind, float(sensor.electrons),
-                      sensor.reset)
+    own = ds.root / "sensor.json"
+    sensor = load_sensor(own) if own.is_file() else None
+    maps = load_sensor(maps_file) if maps_file else sensor
+    if maps is None:
+        return SensorMaps(np.ones((ds.height, ds.width), np.float32), np.zeros((ds.height, ds.width), np.float32))
+    resp, dark = maps.maps(ds.height, ds.width)
+    model = sensor or maps
+    return SensorMaps(resp.astype(np.float32), dark.astype(np.float32), model.kind, float(model.electrons),
+                      model.reset)
 
 
 def read_view_spikes(ds: Dataset, view: ViewRecord) -> np.ndarray:

@@ -52,26 +52,36 @@ def evaluate(run: Path, split: str = "test", device: str = "auto", progress: boo
         pred = spikeio.linear_to_srgb(x.clamp(0, 1).cpu().numpy())
         gt_x, alpha = ground_truth(view, H, W)
         gt = spikeio.linear_to_srgb(gt_x)
-        mask = alpha > 0
-        rows.append(_view_metrics(pred, gt, mask, lp))
+        rows.append({"view": view.name, **_view_metrics(pred, gt, alpha, lp)})
         _write_images(out_dir, view.name.replace("/", "_"), pred, gt)
     metrics = _summary(split, rows, lp, ck)
+    metrics["views_from"] = ds.heldout if split == "test" else split  # "val" when the folder has no test split
     spikeio.write_json_atomic(run / "metrics.json", metrics)
     return metrics
 
 
-def _view_metrics(pred, gt, mask, lp) -> dict:
-    return {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt),
-            "psnr_object": psnr(pred, gt, mask) if mask.any() else None,
-            "ssim_object": ssim(pred, gt, mask) if mask.any() else None,
-            "lpips": lp(pred, gt) if lp.available else None,
-            "lpips_object": lp(pred, gt, mask) if lp.available else None}
+# Regions scored: the object (pixels the object covers at all, and those it covers at least half
+# of) and the background alone (alpha 0: white in the ground truth). The background matters:
+# a field that is hazy there loses PSNR on the full image that the object region does not show.
+REGIONS = {"object": lambda a: a > 0, "object50": lambda a: a > 0.5, "background": lambda a: a == 0}
+
+
+def _view_metrics(pred, gt, alpha, lp) -> dict:
+    out = {"psnr": psnr(pred, gt), "ssim": ssim(pred, gt), "lpips": lp(pred, gt) if lp.available else None}
+    for name, region in REGIONS.items():
+        mask = region(alpha)
+        out[f"psnr_{name}"] = psnr(pred, gt, mask) if mask.any() else None
+        out[f"ssim_{name}"] = ssim(pred, gt, mask) if mask.any() else None
+    out["lpips_object"] = lp(pred, gt, alpha > 0) if lp.available else None
+    return out
 
 
 def _summary(split, rows, lp, ck) -> dict:
-    keys = ("psnr", "ssim", "lpips", "psnr_object", "ssim_object", "lpips_object")
+    keys = [k for k in rows[0] if k != "view"] if rows else []
     out = {"split": split, "views": len(rows)}
     out.update({k: _mean([r[k] for r in rows]) for k in keys})
+    out["regions"] = {"object": "alpha > 0", "object50": "alpha > 0.5", "background": "alpha == 0"}
+    out["per_view"] = rows
     out["train_seconds"] = round(float(ck["train_seconds"]), 2)
     out["iterations"] = int(ck["iteration"])
     out["method"] = ck["config"]["method"]

@@ -11,6 +11,12 @@ MLP of the features and the viewing direction (about 19x slower per iteration on
 cores). The grid is
 upsampled during training (coarse to fine); an occupancy mask of the grid lets the renderer
 skip empty space. The constructor arguments are stored in checkpoints (:meth:`config`).
+
+With the opt-in lazy optimiser (``train.SPARSE_ABOVE_VOXELS``) the trainer switches a field to
+sparse mode (``sparse = True``): points are then sampled by
+gathering their 8 corner voxels (:func:`corners`) instead of ``grid_sample``, and the voxels
+read with gradients enabled are recorded on ``tape`` for the lazy optimiser (optim.py), so
+that a step's work follows the rays, not the grid (docs/trainer.md, "Speed at 400 x 400").
 """
 from __future__ import annotations
 
@@ -65,6 +71,12 @@ class GridField(nn.Module):
                                  nn.Linear(hidden, 1)) if features else nn.Sequential()
         self.register_buffer("occupancy", torch.ones(grid_size, grid_size, grid_size, dtype=torch.bool))
         self.register_buffer("box", torch.tensor([[-bound] * 3, [bound] * 3]))  # occupied box [2, 3], world
+        # Sparse mode (the lazy optimiser's): grids are read by gathering the 8 corners of each point, and
+        # each read made with gradients enabled is recorded on ``tape`` as (grid, its distinct flat
+        # voxel indices [U] sorted, leaf values [C, U]) for optim.LazyGridAdam; no dense gradient is
+        # ever formed.
+        self.sparse = False
+        self.tape: list = []
 
     def _sh_size(self, grid_size: int) -> int:
         return max(8, round(grid_size / self.sh_scale))
@@ -97,12 +109,28 @@ class GridField(nn.Module):
         """Trilinear values [M, 1 + C] of the main grid at world points [M, 3]."""
         return _trilinear(self.grid, self.normalise(points))
 
+    def _read(self, grid: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+        """Trilinear values [M, C] of ``grid`` at world points [M, 3] (sparse or dense path)."""
+        if not self.sparse:
+            return _trilinear(grid, self.normalise(points))
+        idx, w = corners(points / self.bound, grid.shape[-1])
+        flat = grid.detach().view(grid.shape[1], -1)
+        if torch.is_grad_enabled() and grid.requires_grad:
+            # the distinct voxels, sorted (gathers from the big grid then run in address order),
+            # as a leaf [C, U]; the gradient is summed into it, never into a grid-sized tensor
+            voxels, inverse = torch.unique(idx.view(-1), return_inverse=True)
+            leaf = flat.index_select(1, voxels).requires_grad_(True)
+            self.tape.append((grid, voxels, leaf))
+            vals = leaf.index_select(1, inverse)  # [C, M * 8]
+        else:
+            vals = flat.index_select(1, idx.view(-1))
+        return (vals.view(-1, *w.shape) * w).sum(-1).t()
+
     def query(self, points: torch.Tensor, dirs: torch.Tensor):
-        g = self.normalise(points)  # one normalisation for both grids
-        vals = _trilinear(self.grid, g)
+        vals = self._read(self.grid, points)
         sigma = F.softplus(vals[:, 0] + self.shift)
         if self.sh is not None:  # channel 1 is the degree-0 term (a logit); the SH grid adds the rest
-            view = (_trilinear(self.sh, g) * sh_basis(dirs, self.sh_degree)).sum(-1)
+            view = (self._read(self.sh, points) * sh_basis(dirs, self.sh_degree)).sum(-1)
             return sigma, torch.sigmoid(vals[:, 1] + view)
         if not len(self.mlp):
             return sigma, torch.sigmoid(vals[:, 1])
@@ -122,22 +150,31 @@ class GridField(nn.Module):
 
     @torch.no_grad()
     def update_occupancy(self, threshold: float = 1e-4) -> float:
-        """Mark grid points whose (dilated) sample alpha exceeds ``threshold``; returns the occupied fraction."""
-        sigma = F.softplus(self.grid[0, 0] + self.shift)
-        alpha = 1 - torch.exp(-sigma * self.step_ratio * self.voxel / self.ref_voxel)
-        dil = F.max_pool3d(alpha[None, None], kernel_size=3, stride=1, padding=1)[0, 0]
-        self.occupancy = dil > threshold
+        """Mark grid points whose sample alpha, or a neighbour's (3 x 3 x 3), exceeds ``threshold``;
+        returns the occupied fraction.
+
+        Alpha rises with the raw density, so the test is made on the raw grid against the raw value
+        whose alpha is ``threshold`` (one comparison per voxel, no transcendental functions), and
+        the dilation is three 1-D passes on booleans."""
+        k = self.step_ratio * self.voxel / self.ref_voxel  # sigma -> optical depth of one sample
+        sigma_min = -math.log1p(-threshold) / k  # alpha = 1 - exp(-sigma k) > threshold <=> sigma > this
+        raw_min = math.log(math.expm1(sigma_min)) - self.shift  # softplus(raw + shift) > sigma_min
+        self.occupancy = _dilate(self.grid[0, 0] > raw_min)
         self._update_box()
         return float(self.occupancy.float().mean())
 
     def _update_box(self) -> None:
         """The smallest box holding every occupied grid point, padded by one voxel."""
-        idx = self.occupancy.nonzero()
-        if idx.numel() == 0:
-            self.box = torch.zeros_like(self.box)
-            return
-        lo = (idx.amin(dim=0).float() - 1) * self.voxel - self.bound
-        hi = (idx.amax(dim=0).float() + 1) * self.voxel - self.bound
+        lo, hi = [], []
+        for axis in range(3):  # which planes along this axis hold an occupied point
+            planes = self.occupancy.any(dim=[a for a in range(3) if a != axis]).nonzero()
+            if planes.numel() == 0:
+                self.box = torch.zeros_like(self.box)
+                return
+            lo.append(planes[0, 0])
+            hi.append(planes[-1, 0])
+        lo = (torch.stack(lo).float() - 1) * self.voxel - self.bound
+        hi = (torch.stack(hi).float() + 1) * self.voxel - self.bound
         self.box = torch.stack([lo, hi]).clamp(-self.bound, self.bound).to(self.box)
 
     @torch.no_grad()
@@ -155,8 +192,9 @@ class GridField(nn.Module):
     def tv_loss(self, generator: torch.Generator | None = None, block: int = 24) -> torch.Tensor:
         """Total variation (squared differences) on a random ``block^3`` sub-grid: a smoothness prior.
 
-        The SH grid (if any) gets the same prior on its own random block."""
-        return sum(_tv(g, block, generator) for g in self.grids())
+        The SH grid (if any) gets the same prior on its own random block. In sparse mode the block
+        is read as a leaf and recorded on the tape (its gradient stays the size of the block)."""
+        return sum(_tv(g, block, generator, self.tape if self.sparse else None) for g in self.grids())
 
 
 CPU_SPLIT = 2  # points are sampled as this many batches on the CPU (a fixed number: bit-reproducible)
@@ -187,9 +225,45 @@ def split_count(grid: torch.Tensor, points: int) -> int:
     return CPU_SPLIT if grid.device.type == "cpu" and points * 64 >= grid.numel() else 1
 
 
-def _tv(grid: torch.Tensor, block: int, generator) -> torch.Tensor:
+def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None) -> torch.Tensor:
     G = grid.shape[-1]
     b = min(block, G)
     starts = torch.randint(0, G - b + 1, (3,), generator=generator).tolist()
     sub = grid[:, :, starts[0]:starts[0] + b, starts[1]:starts[1] + b, starts[2]:starts[2] + b]
+    if tape is not None and torch.is_grad_enabled():  # a leaf copy of the block; its voxels' flat index
+        axes = [torch.arange(s, s + b, device=grid.device) for s in starts]
+        idx = ((axes[0] * G)[:, None, None] + axes[1][None, :, None]) * G + axes[2][None, None, :]
+        leaf = sub.detach().reshape(grid.shape[1], -1).clone().requires_grad_(True)  # [C, b^3]
+        tape.append((grid, idx.view(-1), leaf))
+        sub = leaf.view(sub.shape)
     return sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean()
+
+
+_CORNER_BITS = torch.tensor([[d, h, w] for d in (0, 1) for h in (0, 1) for w in (0, 1)], dtype=torch.bool)  # [8, 3]
+
+
+def corners(unit: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 8 grid points around each point and their trilinear weights, for a ``size^3`` grid over
+    ``[-1, 1]^3``: flat index ``[M, 8]`` (axis 0 of the grid <- x, as :meth:`GridField.occupied`)
+    and weights ``[M, 8]`` of points ``unit [M, 3]``. Points are clamped into the grid (the
+    renderer's samples lie inside it; ``grid_sample`` with ``align_corners=True`` agrees there)."""
+    pos = ((unit + 1) * (0.5 * (size - 1))).clamp_(0, size - 1)
+    base = pos.floor().clamp_(max=size - 2)
+    frac = pos - base  # [M, 3] in [0, 1]
+    stride = torch.tensor([size * size, size, 1], device=unit.device)
+    flat0 = (base.long() * stride).sum(-1)  # [M]
+    bits = _CORNER_BITS.to(unit.device)
+    idx = flat0[:, None] + (bits.long() * stride).sum(-1)  # [M, 8]
+    w = torch.where(bits, frac[:, None, :], 1 - frac[:, None, :]).prod(-1)  # [M, 8]
+    return idx, w
+
+
+def _dilate(mask: torch.Tensor) -> torch.Tensor:
+    """bool [D, H, W]: points with a True point in their 3 x 3 x 3 neighbourhood (max pooling, separably)."""
+    for dim in range(3):
+        n = mask.shape[dim]
+        out = mask.clone()
+        out.narrow(dim, 1, n - 1).logical_or_(mask.narrow(dim, 0, n - 1))
+        out.narrow(dim, 0, n - 1).logical_or_(mask.narrow(dim, 1, n - 1))
+        mask = out
+    return mask

@@ -13,6 +13,11 @@ needs ``ceil(1 / lambda)`` frames per spike, so the rate becomes ``1 / ceil(1 / 
 staircase that is biased low (``lambda = 0.6`` gives 0.5) and has zero gradient almost
 everywhere. :func:`expected_count` supports it with a straight-through gradient (the slope
 of ``1 / (1 / lambda + 1/2)``), for datasets made with that effect.
+
+The published SpikeNeRF pixel (:func:`paper_pixel`, method ``spikenerf-paper``) is a different
+model, ported as published: its interval-domain fixed-pattern formula (:func:`paper_fpn`), an
+integrate-and-fire loop of 256 steps from an empty membrane with reset to zero
+(:class:`PaperIF`), and the gamma 1/2.2 of its target images.
 """
 from __future__ import annotations
 
@@ -80,3 +85,71 @@ def rsir_rate(x: torch.Tensor, intensity: float, resp: torch.Tensor | None, dark
     q_dark = torch.where(dark > 0, torch.log((a0 + 1) / a0), torch.zeros_like(dark))
     q = torch.cat([q_dark[..., None], q_lit], dim=-1)
     return (torch.exp(logp) * q).sum(dim=-1)
+
+
+PAPER_STEPS = 256  # the published loop's length (and its count's divisor)
+PAPER_GAMMA = 2.2  # the published output is (count / 256) ** (1 / 2.2)
+PAPER_LUX = 335.0  # the published D_light is the interval at this illuminance
+
+
+def paper_fpn_maps(resp: torch.Tensor, dark: torch.Tensor, lux_to_rate: float):
+    """The published fixed-pattern maps ``(Nl, Nd, D_light)`` from this project's ``R`` and ``d``.
+
+    ``Nl = R``; ``Nd = d / L`` (dark current in lux-equivalent, ``L`` spikes per frame per lux);
+    ``D_light = 1 / (R L (335 + Nd))``, the interval (as ``1 / p``) at 335 lux. In its linear
+    regime the published formula gives ``Nl x + Nd / (D_light (335 + Nd)) = R x + R d``: the
+    dataset's own rate law, whatever ``L`` (it cancels; it only sets the parameterisation).
+    """
+    nd = dark / lux_to_rate
+    return resp, nd, 1.0 / (resp * lux_to_rate * (PAPER_LUX + nd))
+
+
+def paper_fpn(x: torch.Tensor, nl: torch.Tensor, nd: torch.Tensor, d_light: torch.Tensor) -> torch.Tensor:
+    """The published fixed-pattern formula on a charge per frame ``x``, in the interval domain:
+    ``D = 1/(x + 1e-5) - 1``; ``D' = D / (Nl + D Nd / (D_light (335 + Nd)))``; ``x' = 1/(D' + 1)``."""
+    D = 1.0 / (x + 1e-5) - 1.0
+    Dp = D / (nl + D * nd / (d_light * (PAPER_LUX + nd)))
+    return 1.0 / (Dp + 1.0)
+
+
+class PaperIF(torch.autograd.Function):
+    """``count / steps`` of the published integrate-and-fire loop on a constant input ``c``.
+
+    Forward, as published: the membrane starts at 0, adds ``c`` each of ``steps`` steps, fires
+    when it is strictly above 1 and is then reset to 0 (float32 sums, as a loop computes
+    them). Backward, as the published surrogate: a spike passes its gradient to the membrane,
+    i.e. to every input since the last reset, so ``d(count / steps) / dc`` is the step of the
+    last spike over ``steps`` (about 1; 0 without a spike): a straight-through estimator.
+    """
+
+    @staticmethod
+    def forward(ctx, c: torch.Tensor, steps: int = PAPER_STEPS) -> torch.Tensor:
+        m = torch.zeros_like(c)
+        count = torch.zeros_like(c)
+        last = torch.zeros_like(c)
+        zero = torch.zeros_like(c)
+        for t in range(1, steps + 1):
+            m = m + c
+            fire = m > 1.0
+            count = count + fire.to(c.dtype)
+            last = torch.where(fire, float(t), last)
+            m = torch.where(fire, zero, m)
+        ctx.save_for_backward(last / steps)
+        return count / steps
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):
+        (slope,) = ctx.saved_tensors
+        return grad * slope, None
+
+
+def paper_pixel(x: torch.Tensor, intensity: float, nl: torch.Tensor, nd: torch.Tensor, d_light: torch.Tensor,
+                steps: int = PAPER_STEPS) -> torch.Tensor:
+    """The published pixel: ``x (I / 256)`` -> :func:`paper_fpn` -> :class:`PaperIF` -> ``** (1 / 2.2)``.
+
+    ``x`` is the rendered linear luminance (the published code divides by 4: ``I = 64``).
+    A pixel without a spike gives 0 with zero gradient (no infinite slope of the power at 0).
+    """
+    rate = PaperIF.apply(paper_fpn(x * (float(intensity) / 256.0), nl, nd, d_light), steps)
+    lit = rate > 0
+    return torch.where(lit, rate.clamp(min=1e-12) ** (1.0 / PAPER_GAMMA), torch.zeros_like(rate))

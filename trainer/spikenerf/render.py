@@ -1,4 +1,12 @@
-"""Rays and volume rendering; a pure function of a field that answers ``query`` and ``occupied``.
+"""Rays and volume rendering: pure functions of a field (``model.GridField`` or any object with the same
+members). What they read of the field, all of it:
+
+- ``query(points [M, 3], dirs [M, 3]) -> (sigma [M] per reference voxel, x [M])``;
+- ``occupied(points [M, 3]) -> bool [M]`` (empty-space skipping);
+- ``box``: ``[2, 3]`` tensor, the occupied box (lo, hi) in world units, on the rays' device;
+- ``voxel`` and ``ref_voxel``: the current and the final voxel edge (world units; density is per
+  reference voxel), and ``step_ratio``: the sample step in voxels (step = ``step_ratio * voxel``);
+- ``grid``: a parameter tensor, touched only to keep the graph connected when no sample is occupied.
 
 Cameras follow NeRF-synthetic (Blender) axes: the camera looks down its -z, +y up; pixel
 ``(i, j)`` (column, row) has its ray through the pixel centre ``(i + 0.5, j + 0.5)``.
@@ -34,10 +42,12 @@ def box_interval(origins: torch.Tensor, dirs: torch.Tensor, box: torch.Tensor, n
 
 
 def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.Tensor | None = None,
-                background: float = BACKGROUND):
+                background: float = BACKGROUND, far: float | None = None):
     """Luminance ``x [n]`` and opacity ``acc [n]`` of rays, alpha-compositing samples every half voxel.
 
     ``jitter [n]`` in [0, 1) offsets each ray's samples (training); None samples at 0.5.
+    With ``far`` given, a third value: depth ``[n]``, the expected distance along the (unit) ray
+    where it ends, the light that passes through counted at ``far``.
     Only samples inside the occupied box and in occupied cells are evaluated: they are kept
     packed (sorted by ray) and composited with a segmented cumulative sum, so empty space
     costs neither field queries nor autograd memory.
@@ -47,14 +57,19 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.
     idx, ray_of, pts = _occupied_samples(field, origins, dirs, step, jitter)
     if idx.numel() == 0:
         zero = origins.new_zeros(n) + 0.0 * field.grid.sum()  # keeps the graph connected
-        return zero + background, zero
+        return (zero + background, zero) if far is None else (zero + background, zero, zero + far)
     sigma, x = field.query(pts, dirs[ray_of])
     log_t = -(sigma * (step / field.ref_voxel)).clamp(max=30.0)  # log(1 - alpha) of each sample
     trans = torch.exp(_exclusive_segment_cumsum(log_t, ray_of, n))
     w = (1 - torch.exp(log_t)) * trans
     acc = origins.new_zeros(n).index_add(0, ray_of, w)
     lum = origins.new_zeros(n).index_add(0, ray_of, w * x)
-    return lum + (1 - acc) * background, acc
+    if far is None:
+        return lum + (1 - acc) * background, acc
+    # depth [n]: the samples' distances along the ray, weighted as luminance is; the light that
+    # passes through (1 - acc) is placed at ``far``, as luminance puts it on the background
+    t = ((pts - origins[ray_of]) * dirs[ray_of]).sum(-1)
+    return lum + (1 - acc) * background, acc, origins.new_zeros(n).index_add(0, ray_of, w * t) + (1 - acc) * far
 
 
 @torch.no_grad()
@@ -98,14 +113,14 @@ def _exclusive_segment_cumsum(v: torch.Tensor, seg: torch.Tensor, n_seg: int) ->
 
 
 @torch.no_grad()
-def render_image(field, pose: torch.Tensor, height: int, width: int, focal_px: float, chunk: int = 8192):
-    """Luminance ``[H, W]`` and opacity ``[H, W]`` of a full view (pose ``[4, 4]``)."""
+def render_image(field, pose: torch.Tensor, height: int, width: int, focal_px: float, chunk: int = 8192,
+                 far: float | None = None):
+    """Luminance ``[H, W]`` and opacity ``[H, W]`` of a full view (pose ``[4, 4]``), and with ``far``
+    given, depth ``[H, W]`` too (see :func:`render_rays`)."""
     P = height * width
-    xs, accs = [], []
+    chunks = []
     for a in range(0, P, chunk):
         pix = torch.arange(a, min(P, a + chunk), device=pose.device)
         o, d = pixel_rays(pose.expand(pix.shape[0], 4, 4), pix, height, width, focal_px)
-        x, acc = render_rays(field, o, d)
-        xs.append(x)
-        accs.append(acc)
-    return torch.cat(xs).view(height, width), torch.cat(accs).view(height, width)
+        chunks.append(render_rays(field, o, d, far=far))
+    return tuple(torch.cat(maps).view(height, width) for maps in zip(*chunks))

@@ -5,10 +5,12 @@ a run resumed from a checkpoint continues with exactly the rays an uninterrupted
 """
 from __future__ import annotations
 
+import dataclasses
 import math
 import time
 from pathlib import Path
 
+import numpy as np
 import torch
 from tqdm import tqdm
 
@@ -20,6 +22,7 @@ from .config import TrainConfig
 from .data import load_dataset
 from .methods import METHODS
 from .model import GridField
+from .optim import LazyGridAdam
 from .render import pixel_rays, render_rays
 from .targets import Targets, build_targets
 
@@ -59,7 +62,18 @@ def make_field(cfg: TrainConfig, width: int) -> GridField:
                      sh_scale=cfg.sh_scale)
 
 
-def make_optimizer(field: GridField, cfg: TrainConfig) -> torch.optim.Optimizer:
+# Grids with more voxels than this train sparsely (lazy Adam); None: never (the default, because
+# the lazy optimiser measured 0.5 dB lower at 400 x 400: docs/trainer.md, "Speed at 400 x 400").
+SPARSE_ABOVE_VOXELS: int | None = None
+
+
+def make_optimizer(field: GridField, cfg: TrainConfig):
+    """Above ``SPARSE_ABOVE_VOXELS`` voxels: lazy Adam over the grids (only the voxels a step read
+    are updated; optim.py), the field in sparse mode so that it records those reads. Otherwise
+    PyTorch's fused dense Adam."""
+    field.sparse = SPARSE_ABOVE_VOXELS is not None and field.grid[0, 0].numel() > SPARSE_ABOVE_VOXELS
+    if field.sparse:
+        return LazyGridAdam(field, cfg.lr_grid, cfg.lr_mlp, betas=(0.9, 0.99))
     return torch.optim.Adam([{"params": field.grids(), "lr": cfg.lr_grid},
                              {"params": field.mlp.parameters(), "lr": cfg.lr_mlp}], betas=(0.9, 0.99), fused=True)
 
@@ -80,8 +94,12 @@ class Batch:
         self.resp = torch.from_numpy(tg.resp).to(device)
         self.dark = torch.from_numpy(tg.dark).to(device)
         self.device = device
+        if tg.kind == "paper":  # the published fixed-pattern maps (Nl, Nd, D_light) [P]
+            self.paper_maps = neuron.paper_fpn_maps(self.resp, self.dark, tg.lux_to_rate)
 
     def draw(self, n: int, gen: torch.Generator):
+        """Image and pixel indices ``[n]`` and sample offsets ``[n]``, drawn on the CPU from ``gen``
+        (so every device draws the same) and then moved to the run's device."""
         N, P = self.values.shape
         img = torch.randint(0, N, (n,), generator=gen).to(self.device)
         pix = torch.randint(0, P, (n,), generator=gen).to(self.device)
@@ -90,19 +108,23 @@ class Batch:
 
 
 def method_loss(method, x, img, pix, batch: Batch, intensity: float):
-    """(loss, predicted radiance-equivalent target for PSNR, observed in radiance units)."""
+    """(loss, prediction, observation): the last two ``[n]`` in comparable units (radiance-like; for
+    ``spikenerf-paper`` the gamma-encoded rate of its targets), for the progress bar's PSNR."""
     obs = batch.values[img, pix]
     if batch.tg.kind == "radiance":
         return (x - obs).square().mean(), x, obs
-    frames = batch.frames[img]
-    if method.exact_sensor and batch.tg.sensor_kind == "rsir":
+    if batch.tg.kind == "paper":
+        pred = neuron.paper_pixel(x, intensity, *(m[pix] for m in batch.paper_maps))
+        return (pred - obs).square().mean(), pred, obs
+    tg, frames = batch.tg, batch.frames[img]
+    if method.exact_sensor and tg.sensor_kind == "rsir":
         lam = neuron.rsir_rate(x, intensity, batch.resp[pix], batch.dark[pix])
     else:
         lam = neuron.spike_rate(x, intensity, batch.resp[pix], batch.dark[pix])
-    mu = neuron.expected_count(lam, frames)
+    mu = neuron.expected_count(lam, frames, tg.reset if method.exact_sensor else "subtract")
     to_x = 256.0 / (intensity * frames)  # count -> radiance-like units, for comparable loss scales
     if method.loss == "nll":
-        var = neuron.count_variance(mu.detach())
+        var = neuron.count_variance(mu.detach(), tg.electrons if method.exact_sensor else 0.0)
         loss = ((mu - obs).square() / (6.0 * var) * to_x.square()).mean()
     else:
         loss = ((mu - obs) * to_x).square().mean()
@@ -114,7 +136,12 @@ def iteration_generator(seed: int, it: int) -> torch.Generator:
 
 
 def save_checkpoint(path: Path, field, opt, cfg, it, train_s, extra) -> None:
-    state = {"config": cfg.to_json(), "field": field.config(), "state": field.state_dict(),
+    """Everything a bit-identical resume needs: the grids in full, the occupancy as bits, the
+    optimizer's moments of the voxels it has touched (LazyGridAdam.state_dict)."""
+    field_state = field.state_dict()
+    occupancy = field_state.pop("occupancy")
+    field_state["occupancy_bits"] = torch.from_numpy(np.packbits(occupancy.cpu().numpy().reshape(-1)))
+    state = {"config": cfg.to_json(), "field": field.config(), "state": field_state,
              "optimizer": opt.state_dict(), "iteration": it, "train_seconds": train_s, **extra}
     with atomic_path(path) as tmp:
         torch.save(state, tmp)
@@ -129,16 +156,22 @@ def load_checkpoint(path: Path, device) -> dict:
 
 def field_from_checkpoint(ck: dict, device) -> GridField:
     field = GridField(**ck["field"]).to(device)
-    field.load_state_dict(ck["state"])
+    state = dict(ck["state"])
+    if "occupancy_bits" in state:  # stored packed by save_checkpoint (older checkpoints hold the bool grid)
+        shape = field.occupancy.shape
+        bits = np.unpackbits(state.pop("occupancy_bits").cpu().numpy(), count=field.occupancy.numel())
+        state["occupancy"] = torch.from_numpy(bits.astype(bool).reshape(shape)).to(device)
+    field.load_state_dict(state)
     return field
 
 
-def _check_resume(ck: dict, cfg: TrainConfig, path: Path) -> None:
-    # checkpoints from before SH was added have no SH keys: they are degree 0 (the scale is then moot)
-    old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, **ck["config"]}
+def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> None:
+    # checkpoints from before SH was added have no SH keys: they are degree 0 (the scale is then moot);
+    # those from before --frames used every frame of the stream
+    old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale"):
+                "sh_scale", "frames", "sensor_maps"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
@@ -157,29 +190,21 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     method = METHODS[cfg.method]
     ds = load_dataset(cfg.dataset)
     H, W = _resolution(ds, cfg.resolution)
-    if ds.holdout:
-        log(f"{ds.root}: no test split; holding out every 8th train view "
-            f"({len(ds.splits['test'])} views) for evaluation")
-    out.mkdir(parents=True, exist_ok=True)
+    cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames))
+    if ds.heldout != "test":
+        log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
+    tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None)
+    out.mkdir(parents=True, exist_ok=True)  # after every input is read: bad input leaves no run folder
     remove_stale_parts(out)  # a run killed while writing a checkpoint leaves its temporary behind
     ck_path = out / CHECKPOINT
-    tg = build_targets(ds, method, H, W, progress=progress)
     batch = Batch(tg, device)
     focal = ds.focal_px * W / ds.width
     field = make_field(cfg, W).to(device)
     opt = make_optimizer(field, cfg)
     schedule = grid_schedule(cfg, W)
-    start, train_s = 0, 0.0
-    if ck_path.is_file():
-        ck = load_checkpoint(ck_path, device)
-        _check_resume(ck, cfg, ck_path)
-        field = field_from_checkpoint(ck, device)
-        opt = make_optimizer(field, cfg)
-        opt.load_state_dict(ck["optimizer"])
-        start, train_s = int(ck["iteration"]), float(ck["train_seconds"])
-        log(f"resuming from {ck_path} at iteration {start}")
+    field, opt, start, train_s = _resume(ck_path, cfg, ds.frames, device, field, opt, log)
     write_json_atomic(out / "config.json", {**cfg.to_json(), "device_used": str(device), "height": H, "width": W,
-                                            "holdout": ds.holdout, "grid_schedule": schedule,
+                                            "holdout": ds.holdout, "heldout": ds.heldout, "grid_schedule": schedule,
                                             "intensity": ds.intensity})
     if start >= cfg.iters:
         log(f"{out}: already trained ({start} iterations)")
@@ -198,11 +223,33 @@ def _resolution(ds, res: int) -> tuple[int, int]:
     return ds.height // f, res
 
 
+def _resume(ck_path: Path, cfg: TrainConfig, all_frames: int, device, field, opt, log):
+    """(field, optimizer, start iteration, training seconds): from the checkpoint if there is one."""
+    if not ck_path.is_file():
+        return field, opt, 0, 0.0
+    ck = load_checkpoint(ck_path, device)
+    _check_resume(ck, cfg, ck_path, all_frames)
+    field = field_from_checkpoint(ck, device)
+    opt = make_optimizer(field, cfg)
+    opt.load_state_dict(ck["optimizer"])
+    log(f"resuming from {ck_path} at iteration {int(ck['iteration'])}")
+    return field, opt, int(ck["iteration"]), float(ck["train_seconds"])
+
+
+def _frames(ds, frames: int | None) -> int:
+    """``--frames w``: 1 <= w <= the dataset's frames; None = all of them."""
+    if frames is None:
+        return ds.frames
+    if not 1 <= frames <= ds.frames:
+        raise InputError(f"--frames {frames}: must be between 1 and the dataset's {ds.frames} frames per stream")
+    return int(frames)
+
+
 def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress, stop_at):
     H, W, focal = cam
     ck_path = out / CHECKPOINT
     extra = {"height": H, "width": W, "focal_px": focal, "intensity": intensity}
-    last_save = time.perf_counter()
+    last_save, save_s = time.perf_counter(), 0.0  # save_s: how long the last save took
     bar = tqdm(range(start, cfg.iters), initial=start, total=cfg.iters, desc=f"train {cfg.method}",
                disable=not progress, unit="it")
     t0 = time.perf_counter()
@@ -219,10 +266,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
         if cfg.tv_weight > 0:
             loss = loss + cfg.tv_weight * field.tv_loss(gen)
-        if not torch.isfinite(loss):
-            bar.close()
-            raise TrainError(f"loss became {'NaN' if torch.isnan(loss) else 'infinite'} at iteration {it}; stopped. The last good checkpoint "
-                             f"{ck_path} is kept" + ("" if ck_path.is_file() else " (none was written yet)"))
+        _check_loss(loss, it, ck_path, bar)
         for g, base in zip(opt.param_groups, (cfg.lr_grid, cfg.lr_mlp)):
             g["lr"] = base * learning_rate_factor(it, cfg.iters)
         opt.zero_grad(set_to_none=True)
@@ -234,11 +278,23 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
                             grid=field.grid_size, occ=f"{float(field.occupancy.float().mean()):.3f}")
         now = time.perf_counter()
         done = it + 1
-        if done in (cfg.iters, stop_at) or done % cfg.checkpoint_every == 0 or now - last_save > cfg.checkpoint_every_s:
+        # by time: every checkpoint_every_s, but at least 20 save-durations apart (saves <= ~5 % of the time)
+        if done in (cfg.iters, stop_at) or done % cfg.checkpoint_every == 0 or \
+                now - last_save > max(cfg.checkpoint_every_s, 20 * save_s):
             _check_finite(field, it, ck_path, bar)
             save_checkpoint(ck_path, field, opt, cfg, done, train_s + now - t0, extra)
-            last_save = now
+            last_save = time.perf_counter()
+            save_s = last_save - now
     bar.close()
+
+
+def _check_loss(loss, it, ck_path, bar) -> None:
+    """A NaN or infinite loss stops the run before the step (the last good checkpoint is kept)."""
+    if torch.isfinite(loss):
+        return
+    bar.close()
+    raise TrainError(f"loss became {'NaN' if torch.isnan(loss) else 'infinite'} at iteration {it}; stopped. The last "
+                     f"good checkpoint {ck_path} is kept" + ("" if ck_path.is_file() else " (none was written yet)"))
 
 
 def _check_finite(field, it, ck_path, bar) -> None:
@@ -250,6 +306,11 @@ def _check_finite(field, it, ck_path, bar) -> None:
                      f"checkpoint {ck_path} is kept" + ("" if ck_path.is_file() else " (none was written yet)"))
 
 
+def _mlp_adam(opt) -> torch.optim.Optimizer | None:
+    """The torch optimizer that holds the MLP's Adam state (keyed by parameter)."""
+    return opt.mlp if isinstance(opt, LazyGridAdam) else opt
+
+
 def _grow(field, opt, cfg, schedule, it):
     """Upsample the grid where the schedule says (a new optimizer state for the grid)."""
     for at, size in schedule:
@@ -257,9 +318,8 @@ def _grow(field, opt, cfg, schedule, it):
             field.upsample(size)
             if it >= cfg.occupancy_after:
                 field.update_occupancy(cfg.occupancy_threshold)
-            old = opt.state_dict()
-            opt = make_optimizer(field, cfg)
-            n_grids = len(field.grids())  # parameter ids 0..n_grids-1 are the grids: their state restarts
-            mlp_state = {k: v for k, v in old["state"].items() if k >= n_grids}
-            opt.load_state_dict({"state": mlp_state, "param_groups": old["param_groups"]})
+            old, opt = opt, make_optimizer(field, cfg)
+            for p in field.mlp.parameters():  # the MLP keeps its Adam state; the grids' restarts
+                if p in _mlp_adam(old).state:
+                    _mlp_adam(opt).state[p] = _mlp_adam(old).state[p]
     return field, opt

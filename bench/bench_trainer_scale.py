@@ -1,0 +1,102 @@
+"""The trainer at 100 x 100 and at 400 x 400, side by side on the same data (issue 13).
+
+Trains ``spikelik`` on one spike dataset twice -- at 100 x 100 (``--resolution 100``: the
+spike counts block-averaged 4 x 4) and at 400 x 400 -- each in its own process (so that each
+run's peak memory is its own), evaluates both on the held-out views, and prints a table: wall
+time of training and of evaluation, the time ratio 400/100, peak memory (RSS), checkpoint
+size, PSNR (full / object). The machine may be shared: the load average (``os.getloadavg``)
+is printed at the start and at the end, and the figures to compare are the ratios.
+
+Targets (docs/trainer.md, "Speed at 400 x 400"): the 400 x 400 run trains in at most 3 times
+the wall time of the 100 x 100 run, with peak memory under 4 GB.
+
+Make the dataset first (a few minutes; keep it outside the repository)::
+
+    spikegen convert /work/shared/data/nerf_synthetic_lego_400 --intensity 64 --sensor rsir --out /tmp/scale
+    python bench/bench_trainer_scale.py /tmp/scale/nerf_synthetic_lego_400_i64 [--iters 3000] [--eval-views 13]
+        [--sparse]   # the lazy grid optimiser (off by default in the trainer)
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import resource
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool) -> dict:
+    """Train and evaluate one run in this process; the figures as a dict."""
+    from spikenerf import train as train_module
+    from spikenerf.config import TrainConfig
+    from spikenerf.eval import evaluate
+    from spikenerf.train import train
+
+    if sparse:  # the lazy optimiser for grids above 128^3 (the 400 x 400 run's final grid)
+        train_module.SPARSE_ABOVE_VOXELS = 128 ** 3
+
+    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device="cpu")
+    t0 = time.perf_counter()
+    ck = train(cfg, out, progress=False, log=lambda m: None)
+    t_train = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    m = evaluate(out, device="cpu", progress=False, max_views=eval_views)
+    t_eval = time.perf_counter() - t0
+    return {"resolution": resolution, "train_s": t_train, "eval_s": t_eval, "views": m["views"],
+            "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
+            "checkpoint_mb": ck.stat().st_size / 1e6, "psnr": m["psnr"], "psnr_object": m["psnr_object"]}
+
+
+def run_child(args, resolution: int, out: Path) -> dict:
+    cmd = [sys.executable, __file__, args.dataset, "--iters", str(args.iters), "--child", str(resolution),
+           "--out", str(out)] + (["--eval-views", str(args.eval_views)] if args.eval_views else []) + \
+          (["--sparse"] if args.sparse else [])
+    res = subprocess.run(cmd, capture_output=True, text=True)
+    if res.returncode != 0:
+        sys.exit(f"the {resolution} x {resolution} run failed: {res.stderr.strip().splitlines()[-1:]}")
+    return json.loads(res.stdout.strip().splitlines()[-1])
+
+
+def table(rows: list[dict]) -> None:
+    print(f"{'run':>10} {'train s':>8} {'eval s':>7} {'views':>5} {'peak RSS MB':>11} {'checkpoint MB':>13} "
+          f"{'PSNR':>6} {'object':>6}")
+    for r in rows:
+        print(f"{r['resolution']:>4} x {r['resolution']:<3} {r['train_s']:>8.1f} {r['eval_s']:>7.1f} {r['views']:>5} "
+              f"{r['peak_rss_mb']:>11.0f} {r['checkpoint_mb']:>13.1f} {r['psnr']:>6.2f} {r['psnr_object']:>6.2f}")
+    a, b = rows
+    ratio = b["train_s"] / a["train_s"]
+    print(f"training time ratio {b['resolution']}/{a['resolution']}: {ratio:.2f} (target <= 3: "
+          f"{'met' if ratio <= 3 else 'NOT met'}); evaluation time ratio per view: "
+          f"{(b['eval_s'] / b['views']) / (a['eval_s'] / a['views']):.2f}")
+    peak = max(r["peak_rss_mb"] for r in rows)
+    print(f"peak memory {peak:.0f} MB (target < 4096: {'met' if peak < 4096 else 'NOT met'})")
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("dataset", help="a 400 x 400 spike dataset (spikegen convert ... --sensor rsir)")
+    ap.add_argument("--iters", type=int, default=3000)
+    ap.add_argument("--eval-views", type=int, default=None, help="evaluate the first N held-out views (default all)")
+    ap.add_argument("--out", type=Path, default=None, help="runs go here (default: a temporary folder)")
+    ap.add_argument("--sparse", action="store_true", help="grids above 128^3 train with the lazy optimiser")
+    ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    args = ap.parse_args()
+    if args.child:
+        print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse)))
+        return
+    print(f"load average at start: {' '.join(f'{x:.2f}' for x in os.getloadavg())}; "
+          f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; {args.iters} iterations; "
+          f"{'lazy optimiser above 128^3' if args.sparse else 'dense Adam'}")
+    with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
+        base = args.out or Path(tmp)
+        rows = [run_child(args, res, base / f"run{res}") for res in (100, 400)]
+    print(f"load average at end: {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
+    table(rows)
+
+
+if __name__ == "__main__":
+    main()

@@ -1,0 +1,62 @@
+"""What each method's loss takes from the dataset's sensor (train.method_loss): spikelik its shot
+noise and reset, the idealised spikenerf neither."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.torch
+
+from spikenerf import neuron  # noqa: E402
+from spikenerf.methods import METHODS  # noqa: E402
+from spikenerf.targets import Targets  # noqa: E402
+from spikenerf.train import Batch, method_loss  # noqa: E402
+
+INTENSITY = 64.0
+
+
+def _batch(**sensor):
+    rng = np.random.default_rng(0)
+    P = 6
+    tg = Targets(poses=np.tile(np.eye(4, dtype=np.float32), (2, 1, 1)),
+                 values=rng.integers(0, 120, (2, P)).astype(np.float32), frames=np.array([256, 128], np.float32),
+                 resp=rng.uniform(0.8, 1.2, P).astype(np.float32), dark=np.full(P, 0.01, np.float32),
+                 height=2, width=3, kind="counts")
+    return Batch(dataclasses.replace(tg, **sensor), torch.device("cpu"))
+
+
+def _loss(method, batch, x):
+    img, pix = torch.tensor([0, 0, 1, 1]), torch.tensor([0, 3, 2, 5])
+    return method_loss(METHODS[method], x, img, pix, batch, INTENSITY)[0], img, pix
+
+
+def _by_hand(batch, x, img, pix, electrons=0.0, reset="subtract"):
+    lam = neuron.spike_rate(x, INTENSITY, batch.resp[pix], batch.dark[pix])
+    frames = batch.frames[img]
+    mu = neuron.expected_count(lam, frames, reset)
+    var = 1 / 6 + mu / electrons if electrons else torch.full_like(mu, 1 / 6)
+    obs = batch.values[img, pix]
+    return ((mu - obs).square() / (6 * var) * (256 / (INTENSITY * frames)).square()).mean()
+
+
+def test_spikelik_weights_by_the_sensors_shot_noise():
+    x = torch.tensor([0.2, 0.5, 0.7, 0.95])
+    noisy, quiet = _batch(electrons=4.0), _batch()
+    loss, img, pix = _loss("spikelik", noisy, x)
+    assert float(loss) == pytest.approx(float(_by_hand(noisy, x, img, pix, electrons=4.0)), rel=1e-6)
+    assert float(loss) < 0.5 * float(_loss("spikelik", quiet, x)[0])  # bright pixels weigh less
+
+
+def test_spikelik_uses_the_reset_to_zero_neuron():
+    x = torch.tensor([0.2, 0.5, 0.7, 0.95])
+    zero = _batch(reset="zero")
+    loss, img, pix = _loss("spikelik", zero, x)
+    assert float(loss) == pytest.approx(float(_by_hand(zero, x, img, pix, reset="zero")), rel=1e-6)
+    assert float(loss) != pytest.approx(float(_by_hand(zero, x, img, pix)), rel=1e-3)
+
+
+def test_idealised_spikenerf_ignores_shot_noise_and_reset():
+    x = torch.tensor([0.2, 0.5, 0.7, 0.95])
+    plain = _loss("spikenerf", _batch(), x)[0]
+    assert float(_loss("spikenerf", _batch(electrons=4.0, reset="zero"), x)[0]) == float(plain)
