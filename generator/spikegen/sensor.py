@@ -333,6 +333,33 @@ def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: i
     threads: row blocks integrated in parallel threads (the result does not depend on it).
     Returns ``uint8 [T, H, W]`` of 0/1.
     """
+    x = _checked_radiance(radiance, intensity, frames)
+    K, H, W = x.shape
+    sensor = (sensor or Sensor()).sized(H, W)
+    resp, dark = sensor.maps(H, W)
+    ss = as_seed_sequence(seed)
+    phase = start_phase(ss, H, W) if phase is None else np.asarray(phase, dtype=np.uint32)
+    if phase.shape != (H, W):
+        raise InputError(f"phase must be [{H}, {W}], got {phase.shape}")
+    out = np.empty((frames, H, W), dtype=np.uint8)
+    fast = sensor.kind == "if" and not sensor.radiance_effects and sensor.simple_readout
+    step = _rows_per_chunk(H, W, fast, max(1, int(threads)))
+    run = _fast_rows if fast else _dense_rows
+
+    def chunk(r0):
+        r1 = min(H, r0 + step)
+        rngs = [np.random.Generator(np.random.PCG64(_child(ss, 1 + b)))
+                for b in range(r0 // CHUNK_ROWS, (r1 + CHUNK_ROWS - 1) // CHUNK_ROWS)]
+        run(x, r0, r1, float(intensity), sensor, resp, dark, phase, frames, rngs,
+            out.reshape(frames, H * W)[:, r0 * W: r1 * W])
+        return r1
+
+    _run_chunks(chunk, range(0, H, step), max(1, int(threads)), progress, H)
+    return out
+
+
+def _checked_radiance(radiance, intensity: float, frames: int) -> np.ndarray:
+    """``radiance`` as ``[K, H, W]``; an :class:`InputError` for a bad shape, value, intensity or T."""
     x = np.asarray(radiance)
     if x.ndim == 2:
         x = x[None]
@@ -346,33 +373,23 @@ def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: i
         raise InputError(f"intensity must be a positive number, got {intensity}")
     if int(frames) != frames or frames < 1:
         raise InputError(f"frames must be a positive integer, got {frames}")
-    K, H, W = x.shape
-    sensor = (sensor or Sensor()).sized(H, W)
-    resp, dark = sensor.maps(H, W)
-    ss = as_seed_sequence(seed)
-    phase = start_phase(ss, H, W) if phase is None else np.asarray(phase, dtype=np.uint32)
-    if phase.shape != (H, W):
-        raise InputError(f"phase must be [{H}, {W}], got {phase.shape}")
-    out = np.empty((frames, H, W), dtype=np.uint8)
-    fast = sensor.kind == "if" and not sensor.radiance_effects and sensor.simple_readout
+    return x
+
+
+def _rows_per_chunk(H: int, W: int, fast: bool, threads: int) -> int:
+    """Rows integrated together: a multiple of CHUNK_ROWS (no effect on the result)."""
     step = max(CHUNK_ROWS, (FAST_CHUNK_PIXELS // W) // CHUNK_ROWS * CHUNK_ROWS) if fast else CHUNK_ROWS
-    threads = max(1, int(threads))
     if threads > 1:  # at least one chunk per thread
         step = min(step, max(CHUNK_ROWS, -(-H // (threads * CHUNK_ROWS)) * CHUNK_ROWS))
-    run = _fast_rows if fast else _dense_rows
+    return step
 
-    def chunk(r0):
-        r1 = min(H, r0 + step)
-        rngs = [np.random.Generator(np.random.PCG64(_child(ss, 1 + b)))
-                for b in range(r0 // CHUNK_ROWS, (r1 + CHUNK_ROWS - 1) // CHUNK_ROWS)]
-        run(x, r0, r1, float(intensity), sensor, resp, dark, phase, frames, rngs,
-            out.reshape(frames, H * W)[:, r0 * W: r1 * W])
-        return r1
 
-    starts = range(0, H, step)
+def _run_chunks(chunk, starts, threads: int, progress, H: int) -> None:
+    """``chunk(r0)`` for every start, in ``threads`` threads (NumPy releases the GIL inside its
+    loops; chunks write disjoint outputs); ``progress(rows_done, H)`` after each."""
     if threads == 1:
         done = map(chunk, starts)
-    else:  # NumPy releases the GIL inside its loops; chunks write disjoint outputs
+    else:
         from concurrent.futures import ThreadPoolExecutor
 
         pool = ThreadPoolExecutor(max_workers=threads)
@@ -384,7 +401,6 @@ def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: i
     finally:
         if threads > 1:
             pool.shutdown()
-    return out
 
 
 def _child(ss: np.random.SeedSequence, i: int) -> np.random.SeedSequence:
