@@ -408,6 +408,7 @@ class Transforms:
     camera_angle_x: float
     spike: SpikeBlock
     frames: tuple  # ViewRecord
+    intrinsics: "Intrinsics | None" = None  # read from an imported capture's fl_x ... h; not written here
 
     def to_json(self) -> dict:
         return {"camera_angle_x": self.camera_angle_x, "spike": self.spike.to_json(),
@@ -427,9 +428,10 @@ class Transforms:
         frames = doc.get("frames")
         if not isinstance(frames, list):
             raise InputError(f"{path}: 'frames' must be a list")
-        views = tuple(ViewRecord.from_transforms_frame(fr, split, i, path.parent, f"{path} frame {i}")
+        views = tuple(ViewRecord.from_transforms_frame(fr, split, i, path.parent, f"{path} frame {i}",
+                                                       keep=CAPTURE_FRAME_KEYS)
                       for i, fr in enumerate(frames))
-        out = cls(float(cam), spike, views)
+        out = cls(float(cam), spike, views, Intrinsics.from_json(doc, str(path), spike))
         _first(out.file_problems(path))
         return out
 
@@ -577,6 +579,8 @@ class ConvertTask:
 # ---------------------------------------------------------------------- real captures (spikegen import)
 POSES_FROM_COLMAP = "colmap"  # transforms "poses_from": structure from motion with pycolmap
 IMAGE_KIND_RECONSTRUCTION = "reconstruction"  # a frame's PNG was reconstructed from its own spikes
+CAPTURE_FRAME_KEYS = ("image_kind", "near", "far")  # keys of an imported frame kept in ViewRecord.extra
+INTRINSICS_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 RECONSTRUCTIONS = ("tfi", "tfp")  # spikegen.recon methods an import can write as the views' images
 
 
@@ -599,7 +603,24 @@ class Intrinsics:
         return 2.0 * math.atan(self.w / (2.0 * self.fl_x))
 
     def to_json(self) -> dict:
-        return {"fl_x": self.fl_x, "fl_y": self.fl_y, "cx": self.cx, "cy": self.cy, "w": self.w, "h": self.h}
+        return {key: getattr(self, key) for key in INTRINSICS_KEYS}
+
+    @classmethod
+    def from_json(cls, doc: dict, where: str, spike: SpikeBlock) -> "Intrinsics | None":
+        """The intrinsics of a transforms document, None when it has none (a NeRF-synthetic layout);
+        an ``InputError`` when they are incomplete, not positive, or of another size than ``spike``."""
+        if not any(key in doc for key in INTRINSICS_KEYS):
+            return None
+        vals = [doc.get(key) for key in INTRINSICS_KEYS]
+        if not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) and v > 0
+                   for v in vals):
+            raise InputError(f"{where}: intrinsics {', '.join(INTRINSICS_KEYS)} must all be positive numbers, "
+                             f"got {vals}")
+        out = cls(*(float(v) for v in vals[:4]), int(vals[4]), int(vals[5]))
+        if (out.w, out.h) != (spike.width, spike.height):
+            raise InputError(f"{where}: intrinsics are for {out.w}x{out.h} images, the spike block says "
+                             f"{spike.width}x{spike.height}")
+        return out
 
 
 @dataclass(frozen=True)

@@ -18,9 +18,10 @@ import numpy as np
 
 from spikegen import spikeio
 from spikegen.errors import InputError
-from spikegen.formats import SpikeBlock, Transforms, ViewRecord, focal_px
+from spikegen.formats import IMAGE_KIND_RECONSTRUCTION, Intrinsics, SpikeBlock, Transforms, ViewRecord, focal_px
 
 HOLDOUT_EVERY = 8  # without a test or val split, train views 0, 8, 16, ... are held out
+WHITE, BLACK = 1.0, 0.0  # backgrounds: the NeRF-synthetic white composite; none (a scene filling the frame)
 
 
 @dataclass
@@ -34,6 +35,7 @@ class Dataset:
     splits: dict = field(default_factory=dict)  # split -> list[ViewRecord]
     holdout: bool = False  # test views taken from train (every 8th): the folder has neither test nor val
     heldout: str = "test"  # where the evaluation views come from: "test", "val" or "train every 8th"
+    intrinsics: Intrinsics | None = None  # an imported capture's fl_x, fl_y, cx, cy (None: camera_angle_x only)
 
     height = property(lambda self: self.spike.height)
     width = property(lambda self: self.spike.width)
@@ -44,6 +46,32 @@ class Dataset:
     @property
     def focal_px(self) -> float:
         return focal_px(self.width, self.camera_angle_x)
+
+    @property
+    def fills_frame(self) -> bool:
+        """A capture whose scene fills the frame: no background in the spike block, and intrinsics of
+        its own (folders written before the block had "background" lack both: they are over white)."""
+        return self.spike.background is None and self.intrinsics is not None
+
+    @property
+    def background(self) -> float:
+        """What rays that pass through the field composite onto: white, or black for a scene that fills
+        the frame (the field itself then holds everything seen, out to the box it spans)."""
+        return BLACK if self.fills_frame else WHITE
+
+    def camera(self, height: int, width: int):
+        """The camera at ``height x width``: the square-pixel centred focal length (a float, as before)
+        without intrinsics, else ``(fl_x, fl_y, cx, cy)`` scaled to that size (render.pixel_rays)."""
+        if self.intrinsics is None:
+            return self.focal_px * width / self.width
+        k = self.intrinsics
+        sx, sy = width / k.w, height / k.h
+        return (k.fl_x * sx, k.fl_y * sy, k.cx * sx, k.cy * sy)
+
+
+def has_ground_truth(view: ViewRecord) -> bool:
+    """A view's PNG is a rendering of the scene (not an image reconstructed from its own spikes)."""
+    return view.extra.get("image_kind") != IMAGE_KIND_RECONSTRUCTION
 
 
 def load_dataset(root) -> Dataset:
@@ -57,7 +85,8 @@ def load_dataset(root) -> Dataset:
                else "not a folder (expected a dataset folder with transforms_train.json)")
         raise InputError(f"{root}: {why}")
     train = Transforms.read(train_json, "train")
-    ds = Dataset(root, train.spike, train.camera_angle_x, {"train": list(train.frames)})
+    ds = Dataset(root, train.spike, train.camera_angle_x, {"train": list(train.frames)},
+                 intrinsics=train.intrinsics)
     for split in ("val", "test"):
         p = root / f"transforms_{split}.json"
         if p.is_file():

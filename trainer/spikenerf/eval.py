@@ -4,6 +4,13 @@ Comparison space (the same for every method): sRGB-encoded luminance composited 
 in [0, 1] -- the display image a person sees, as the paper compares. Ground truth: the
 view's ``r_N.png`` -> linear luminance on white (sensor-model.md) -> sRGB encoding. The
 model's output is linear luminance on white -> the same encoding.
+
+An imported capture (frames of ``"image_kind": "reconstruction"``) has no ground truth: each
+held-out view is compared with its own long-window reconstruction instead, the spike rate over
+its whole stream with the dataset's fixed pattern removed (``rate / R - d``, as the imported PNG),
+in linear luminance (the PNG itself is scaled to its 99.5th percentile, so not in the field's
+units) -> the same encoding; a scene that fills the frame is rendered without the white
+composite (its run's background). ``metrics.json`` says which: ``"compared_with"``.
 """
 from __future__ import annotations
 
@@ -16,10 +23,12 @@ from tqdm import tqdm
 from spikegen import spikeio
 from spikegen.errors import InputError
 
-from .data import ground_truth, load_dataset
+from .data import area_resize, ground_truth, has_ground_truth, load_dataset, load_sensor_maps, read_view_spikes
 from .metrics import Lpips, psnr, ssim
 from .render import render_image
-from .train import CHECKPOINT, field_from_checkpoint, load_checkpoint, resolve_device
+from .train import CHECKPOINT, checkpoint_camera, field_from_checkpoint, load_checkpoint, resolve_device
+
+GROUND_TRUTH, RECONSTRUCTION = "ground truth", "reconstruction"  # metrics.json "compared_with"
 
 
 def _mean(vals):
@@ -42,22 +51,40 @@ def evaluate(run: Path, split: str = "test", device: str = "auto", progress: boo
         raise InputError(f"{ds.root}: no {split!r} split (has {', '.join(ds.splits)})")
     views = ds.splits[split][:max_views] if max_views else ds.splits[split]
     field = field_from_checkpoint(ck, dev).eval()
-    H, W, focal = ck["height"], ck["width"], ck["focal_px"]
+    H, W, focal, background = checkpoint_camera(ck)
     lp = Lpips()
     out_dir = run / f"eval_{split}"
-    rows = []
+    rows, kinds = [], set()
     for i, view in enumerate(tqdm(views, desc=f"eval {split}", disable=not progress, unit="view")):
         pose = torch.as_tensor(view.pose, dtype=torch.float32, device=dev)
-        x, _ = render_image(field, pose, H, W, focal)
+        x, _ = render_image(field, pose, H, W, focal, background=background)
         pred = spikeio.linear_to_srgb(x.clamp(0, 1).cpu().numpy())
-        gt_x, alpha = ground_truth(view, H, W)
+        kind, gt_x, alpha = reference(ds, view, H, W)
+        kinds.add(kind)
         gt = spikeio.linear_to_srgb(gt_x)
         rows.append({"view": view.name, **_view_metrics(pred, gt, alpha, lp)})
         _write_images(out_dir, view.name.replace("/", "_"), pred, gt)
     metrics = _summary(split, rows, lp, ck)
     metrics["views_from"] = ds.heldout if split == "test" else split  # "val" when the folder has no test split
+    metrics["compared_with"] = " and ".join(sorted(kinds))  # one of the two unless a folder mixes them
+    if background != 1.0:
+        metrics["compared_as"] = "sRGB-encoded luminance, [0, 1] (no background: the scene fills the frame)"
     spikeio.write_json_atomic(run / "metrics.json", metrics)
     return metrics
+
+
+def reference(ds, view, height: int, width: int) -> tuple[str, np.ndarray, np.ndarray]:
+    """(what it is, linear luminance [H, W], alpha [H, W]) a rendered view is compared with: the
+    view's ground truth, or without one its long-window reconstruction (alpha 1: all scene)."""
+    if has_ground_truth(view):
+        return (GROUND_TRUTH, *ground_truth(view, height, width))
+    spikes = read_view_spikes(ds, view)
+    rate = spikes.mean(axis=0, dtype=np.float64)
+    maps = load_sensor_maps(ds)
+    x = np.maximum(rate / maps.resp - maps.dark, 0.0) * (256.0 / ds.intensity)
+    if x.shape != (height, width):
+        x = area_resize(x, height, width)
+    return RECONSTRUCTION, x.astype(np.float32), np.ones((height, width), np.float32)
 
 
 # Regions scored: the object (pixels the object covers at all, and those it covers at least half

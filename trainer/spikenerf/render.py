@@ -18,15 +18,21 @@ import torch
 BACKGROUND = 1.0  # transparent film composited onto white (X = 1), as the dataset's ground truth
 
 
-def pixel_rays(poses: torch.Tensor, pix: torch.Tensor, height: int, width: int, focal_px: float):
+def pixel_rays(poses: torch.Tensor, pix: torch.Tensor, height: int, width: int, focal_px):
     """Rays of pixels ``pix [n]`` (flat index row * W + col) seen by cameras ``poses [n, 4, 4]``.
 
+    ``focal_px``: one focal length (square pixels, principal point at the image centre), or
+    ``(fl_x, fl_y, cx, cy)`` in pixels (principal point from the top-left corner of the image).
     Returns origins ``[n, 3]`` and unit directions ``[n, 3]``.
     """
+    if isinstance(focal_px, (tuple, list)):
+        fx, fy, cx, cy = (float(v) for v in focal_px)
+    else:
+        fx = fy = focal_px
+        cx, cy = 0.5 * width, 0.5 * height
     row = torch.div(pix, width, rounding_mode="floor").to(poses.dtype)
     col = (pix % width).to(poses.dtype)
-    d_cam = torch.stack([(col + 0.5 - 0.5 * width) / focal_px, -(row + 0.5 - 0.5 * height) / focal_px,
-                         -torch.ones_like(col)], dim=-1)
+    d_cam = torch.stack([(col + 0.5 - cx) / fx, -(row + 0.5 - cy) / fy, -torch.ones_like(col)], dim=-1)
     d = torch.einsum("nij,nj->ni", poses[:, :3, :3], d_cam)
     return poses[:, :3, 3], d / d.norm(dim=-1, keepdim=True)
 
@@ -113,14 +119,14 @@ def _exclusive_segment_cumsum(v: torch.Tensor, seg: torch.Tensor, n_seg: int) ->
 
 
 @torch.no_grad()
-def render_image(field, pose: torch.Tensor, height: int, width: int, focal_px: float, chunk: int = 8192,
-                 far: float | None = None):
-    """Luminance ``[H, W]`` and opacity ``[H, W]`` of a full view (pose ``[4, 4]``), and with ``far``
-    given, depth ``[H, W]`` too (see :func:`render_rays`)."""
+def render_image(field, pose: torch.Tensor, height: int, width: int, focal_px, chunk: int = 8192,
+                 far: float | None = None, background: float = BACKGROUND):
+    """Luminance ``[H, W]`` and opacity ``[H, W]`` of a full view (pose ``[4, 4]``; ``focal_px`` as
+    :func:`pixel_rays` takes it), and with ``far`` given, depth ``[H, W]`` too (see :func:`render_rays`)."""
     P = height * width
     chunks = []
     for a in range(0, P, chunk):
         pix = torch.arange(a, min(P, a + chunk), device=pose.device)
         o, d = pixel_rays(pose.expand(pix.shape[0], 4, 4), pix, height, width, focal_px)
-        chunks.append(render_rays(field, o, d, far=far))
+        chunks.append(render_rays(field, o, d, background=background, far=far))
     return tuple(torch.cat(maps).view(height, width) for maps in zip(*chunks))

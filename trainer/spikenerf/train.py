@@ -23,7 +23,7 @@ from .data import load_dataset
 from .methods import METHODS
 from .model import GridField
 from .optim import LazyGridAdam
-from .render import pixel_rays, render_rays
+from .render import BACKGROUND, pixel_rays, render_rays
 from .targets import Targets, build_targets
 
 CHECKPOINT = "checkpoint.pt"
@@ -165,6 +165,15 @@ def field_from_checkpoint(ck: dict, device) -> GridField:
     return field
 
 
+def checkpoint_camera(ck: dict) -> tuple:
+    """(height, width, focal, background) a checkpoint was trained with: ``focal`` a float or
+    ``(fl_x, fl_y, cx, cy)`` (render.pixel_rays); checkpoints from before backgrounds were recorded
+    were trained on white."""
+    focal = ck["focal_px"]
+    focal = tuple(float(v) for v in focal) if isinstance(focal, (tuple, list)) else float(focal)
+    return int(ck["height"]), int(ck["width"]), focal, float(ck.get("background", BACKGROUND))
+
+
 def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> None:
     # checkpoints from before SH was added have no SH keys: they are degree 0 (the scale is then moot);
     # those from before --frames used every frame of the stream
@@ -198,7 +207,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     remove_stale_parts(out)  # a run killed while writing a checkpoint leaves its temporary behind
     ck_path = out / CHECKPOINT
     batch = Batch(tg, device)
-    focal = ds.focal_px * W / ds.width
+    focal = ds.camera(H, W)  # a float (square pixels, centred) or (fl_x, fl_y, cx, cy)
     field = make_field(cfg, W).to(device)
     opt = make_optimizer(field, cfg)
     schedule = grid_schedule(cfg, W)
@@ -209,8 +218,8 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     if start >= cfg.iters:
         log(f"{out}: already trained ({start} iterations)")
         return ck_path
-    _loop(cfg, method, field, opt, batch, ds.intensity, (H, W, focal), schedule, start, train_s, out, progress,
-          stop_at or cfg.iters)
+    _loop(cfg, method, field, opt, batch, ds.intensity, (H, W, focal, ds.background), schedule, start, train_s, out,
+          progress, stop_at or cfg.iters)
     return ck_path
 
 
@@ -246,9 +255,9 @@ def _frames(ds, frames: int | None) -> int:
 
 
 def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress, stop_at):
-    H, W, focal = cam
+    H, W, focal, background = cam
     ck_path = out / CHECKPOINT
-    extra = {"height": H, "width": W, "focal_px": focal, "intensity": intensity}
+    extra = {"height": H, "width": W, "focal_px": focal, "intensity": intensity, "background": background}
     last_save, save_s = time.perf_counter(), 0.0  # save_s: how long the last save took
     bar = tqdm(range(start, cfg.iters), initial=start, total=cfg.iters, desc=f"train {cfg.method}",
                disable=not progress, unit="it")
@@ -262,7 +271,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         gen = iteration_generator(cfg.seed, it)
         img, pix, jitter = batch.draw(cfg.batch_rays, gen)
         o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
-        x, _ = render_rays(field, o, d, jitter)
+        x, _ = render_rays(field, o, d, jitter, background)  # the composite the sensor model sees
         loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
         if cfg.tv_weight > 0:
             loss = loss + cfg.tv_weight * field.tv_loss(gen)

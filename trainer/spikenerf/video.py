@@ -38,7 +38,7 @@ from spikegen.spikeio import linear_to_srgb
 
 from .data import load_dataset
 from .render import render_image
-from .train import CHECKPOINT, field_from_checkpoint, load_checkpoint, resolve_device
+from .train import CHECKPOINT, checkpoint_camera, field_from_checkpoint, load_checkpoint, resolve_device
 
 PATHS = ("orbit", "spiral")
 ORBIT_ELEVATION_DEG = 30.0
@@ -107,11 +107,12 @@ def render_video(run, path: str, frames: int, out, fps: float = 20.0, device: st
     ck = load_checkpoint(ck_path, dev)
     field = field_from_checkpoint(ck, dev).eval()
     poses = path_poses(path, frames, camera_radius(ck["config"]["dataset"], log))
-    H, W, focal = int(ck["height"]), int(ck["width"]), float(ck["focal_px"])
+    H, W, focal, background = checkpoint_camera(ck)
 
     def views():
         for pose in tqdm(poses, desc=f"render {path}", unit="frame", disable=not progress):
-            maps = render_image(field, torch.as_tensor(pose, dtype=torch.float32, device=dev), H, W, focal, far=FAR)
+            maps = render_image(field, torch.as_tensor(pose, dtype=torch.float32, device=dev), H, W, focal, far=FAR,
+                                background=background)
             yield frame_panels(*(m.cpu().numpy() for m in maps))
 
     return write_animation(out, views(), fps)
