@@ -1,20 +1,30 @@
-"""The paper's protocol on the real lego (Table S3 shape), measured, printed as a table.
+"""The benchmark protocol (bench/PROTOCOL.md): every run appended to one results file.
 
-For each sensor (rsir, paper) and intensity (16, 32, 64): ``spikegen convert`` the real
-NeRF-synthetic lego train views (shared/data/nerf_synthetic_lego_400; no test split there, so
-the trainer holds out every 8th view), ``spikenerf train`` every method, ``spikenerf eval``
-on the held-out views; print PSNR full/object with the paper's lego numbers beside ours, and
-the training time of every run. Results are also written to ``OUT/results.json``.
+    python bench/bench_protocol.py --resolution 100 --sensors rsir --intensities 64 \
+        --methods spikelik,spikenerf-paper,tfp32 --seeds 0,1,2
+    python bench/bench_protocol.py --resolution 400 --device cuda          # the paper's scale
+    python bench/make_protocol.py                                          # PROTOCOL.md from the results
 
-    python bench/bench_protocol.py --resolution 100            # CI scale, CPU
-    python bench/bench_protocol.py --resolution 400 --device cuda
-
-Finished steps are skipped when rerun (converted folders, runs with metrics.json).
+Per data set, sensor and intensity: ``spikegen convert`` (the real lego: its 100 train views are
+trained on, its 100 ``val`` views, never seen in training, are the held-out views; a procedural
+scene: ``spikegen render`` with the moving camera, its test split held out), then for every method
+and seed ``spikenerf train`` and ``spikenerf eval``. Each finished run becomes one line of
+``bench/results/protocol.jsonl``: what it was (data, sensor, intensity, method, what the method knows
+of the sensor, resolution, seed, iterations, frames, device), what it cost (train seconds, wall
+seconds, the load average) and every metric (means and per view). A run already in the file is
+skipped, so a long table is completed over several sessions; work folders live in ``--out``.
+``--calibrated`` adds, for every method that uses the sensor's maps, a run with the maps of
+``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
+real camera has) instead of the dataset's true maps. No setting is chosen here: every method runs
+with the trainer's defaults.
 """
 from __future__ import annotations
 
 import argparse
+import datetime
+import itertools
 import json
+import os
 import subprocess
 import sys
 import time
@@ -22,107 +32,152 @@ from pathlib import Path
 
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_400"
-METHODS = ["spikelik", "spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi"]
-PAPER = {  # the paper's Table S3, lego, PSNR full / object
-    "paper: TFP(32)+NeRF": {16: (15.27, 15.57), 32: (17.81, 18.55), 64: (20.63, 21.86)},
-    "paper: SpikeNeRF": {16: (18.72, 19.38), 32: (22.05, 23.66), 64: (23.89, 24.46)},
-}
+RESULTS = REPO / "bench" / "results" / "protocol.jsonl"
+METHODS = ["spikelik", "spikenerf-paper", "spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi"]
+# What each method knows of the camera's fixed pattern: the dataset's own (true) R and dark current,
+# or nothing (it reconstructs images from the spikes, or assumes R = 1).
+KNOWLEDGE = {"spikelik": "true maps", "spikenerf-paper": "true maps", "spikenerf": "true maps",
+             "spikenerf-noR": "none", "tfp32": "none", "tfp256": "none", "tfi": "none"}
+KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed", "iterations", "frames")
+CAL_INTENSITY, CAL_FRAMES = 64.0, 2000  # the simulated calibration recordings: a dark and two flats
+CAL_FLATS_X = (0.25, 0.75)  # flat radiances; their "lux" is the nominal rate X * I / 256 (spikes per frame)
 
 
-def _run(cmd: list[str]) -> None:
+def _run(cmd: list[str]) -> str:
     print("$", " ".join(cmd), flush=True)
     res = subprocess.run(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
     if res.returncode:
-        sys.exit(f"failed ({res.returncode}): {' '.join(cmd)}\n{res.stderr.strip().splitlines()[-1:]}")
+        last = (res.stderr.strip().splitlines() or ["?"])[-1]
+        sys.exit(f"failed ({res.returncode}): {' '.join(cmd)}\n{last}")
+    return res.stdout
 
 
-def convert(out: Path, sensor: str, intensity: int, resolution: int) -> Path:
-    root = out / f"data_{sensor}_{resolution}"
-    folder = root / f"{LEGO.name}_i{intensity}"
+def dataset(data: str, sensor: str, intensity: int, args) -> Path:
+    """The spike dataset of one cell (made once, reused by every method and seed)."""
+    root = args.out / f"data_{data}_{sensor}_{args.resolution}"
+    if data == "lego":
+        folder = root / f"{LEGO.name}_i{intensity}"
+        if not (folder / "manifest.json").is_file():
+            _run(["spikegen", "convert", str(LEGO), "--intensity", str(intensity), "--out", str(root),
+                  "--sensor", sensor, "--resolution", str(args.resolution)])
+        return folder
+    folder = root / f"{data}_i{intensity}"
     if not (folder / "manifest.json").is_file():
-        _run(["spikegen", "convert", str(LEGO), "--intensity", str(intensity), "--out", str(root),
-              "--sensor", sensor, "--resolution", str(resolution)])
+        _run(["spikegen", "render", "--scene", data, "--intensity", str(intensity), "--out", str(root),
+              "--sensor", sensor, "--resolution", str(args.resolution), "--views", args.scene_views])
     return folder
 
 
-def train_eval(folder: Path, run: Path, method: str, args) -> dict:
-    if not (run / "metrics.json").is_file():
-        cmd = ["spikenerf", "train", str(folder), "--method", method, "--out", str(run), "--device", args.device,
-               "--seed", str(args.seed), "--quiet"]
-        if args.iters:
-            cmd += ["--iters", str(args.iters)]
-        t0 = time.perf_counter()
-        _run(cmd)
-        wall = time.perf_counter() - t0
-        t0 = time.perf_counter()
-        _run(["spikenerf", "eval", str(run), "--device", args.device, "--quiet"])
-        m = json.loads((run / "metrics.json").read_text())
-        m["wall_seconds_train_command"] = round(wall, 1)
-        m["wall_seconds_eval_command"] = round(time.perf_counter() - t0, 1)
-        (run / "metrics.json").write_text(json.dumps(m, indent=1))
-    return json.loads((run / "metrics.json").read_text())
+def calibration(sensor: str, args) -> Path:
+    """``spikegen calibrate`` on simulated dark and flat recordings of the dataset's camera (the
+    same maps as its conversion: seed 0): the maps a user of a real camera has, not the true ones."""
+    import numpy as np
+
+    from spikegen.presets import get_sensor
+    from spikegen.sensor import simulate
+    from spikegen.spikeio import write_spikes
+
+    prefix = args.out / f"calibration_{sensor}_{args.resolution}"
+    if prefix.with_suffix(".json").is_file():
+        return prefix.with_suffix(".json")
+    res = args.resolution
+    camera = get_sensor(sensor, res, res, 0).sized(res, res)
+    paths = {}
+    for k, x in enumerate((0.0, *CAL_FLATS_X)):
+        spikes = simulate(np.full((1, res, res), x, np.float32), CAL_INTENSITY, camera, frames=CAL_FRAMES,
+                          seed=1000 + k)
+        paths[x] = args.out / f"calibration_{sensor}_{res}_x{x:g}.npz"
+        write_spikes(paths[x], spikes)
+    flats = [f"--flat={x * CAL_INTENSITY / 256:g}={paths[x]}" for x in CAL_FLATS_X]
+    _run(["spikegen", "calibrate", "--dark", str(paths[0.0]), *flats, "--out", str(prefix)])
+    return prefix.with_suffix(".json")
 
 
-def _cell(m) -> str:
-    return "–" if m is None else f"{m['psnr']:.2f}/{m['psnr_object']:.2f}"
+def done_keys() -> set:
+    if not RESULTS.is_file():
+        return set()
+    rows = [json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]
+    return {tuple(r[k] for k in KEY) for r in rows}
 
 
-def _run_minutes(m) -> str:
-    if "wall_seconds_eval_command" not in m:  # a run from before the eval command was timed
-        return "?"
-    return f"{(m['wall_seconds_train_command'] + m['wall_seconds_eval_command']) / 60:.1f} min"
+def run_one(folder: Path, cell: dict, args) -> dict:
+    """Train and evaluate one run; the results line."""
+    run = args.out / f"runs_{args.resolution}" / "_".join(str(cell[k]) for k in KEY).replace(" ", "-")
+    cmd = ["spikenerf", "train", str(folder), "--method", cell["method"], "--out", str(run), "--device",
+           args.device, "--seed", str(cell["seed"]), "--quiet", "--iters", str(cell["iterations"])]
+    if cell["frames"]:
+        cmd += ["--frames", str(cell["frames"])]
+    if cell["knowledge"] == "calibrated maps":
+        cmd += ["--sensor-maps", str(calibration(cell["sensor"], args))]
+    load0, t0 = os.getloadavg()[0], time.perf_counter()
+    _run(cmd)
+    _run(["spikenerf", "eval", str(run), "--device", args.device, "--quiet"])
+    wall = time.perf_counter() - t0
+    m = json.loads((run / "metrics.json").read_text())
+    cfg = json.loads((run / "config.json").read_text())
+    per_view = m.pop("per_view")
+    return {**cell, "device": cfg["device_used"], "train_seconds": m["train_seconds"],
+            "wall_seconds": round(wall, 1), "load_average": [round(load0, 2), round(os.getloadavg()[0], 2)],
+            "views_from": m.get("views_from"), "metrics": {k: v for k, v in m.items() if _metric(k)},
+            "per_view": [{k: v for k, v in r.items() if k == "view" or _metric(k)} for r in per_view],
+            "commit": _commit(), "date": datetime.date.today().isoformat()}
 
 
-def print_tables(results: dict, intensities, sensors, methods, resolution) -> None:
-    print(f"\n| lego {resolution}x{resolution} PSNR full/object | " + " | ".join(f"i{i}" for i in intensities) + " |")
-    print("|---|" + "---|" * len(intensities))
-    for name, row in PAPER.items():
-        print(f"| {name} (400x400) | " + " | ".join("%.2f/%.2f" % row[i] if i in row else "–" for i in intensities)
-              + " |")
-    for s in sensors:
-        for meth in methods:
-            print(f"| ours {s}: {meth} | " + " | ".join(_cell(results.get(f"{s}/{i}/{meth}")) for i in intensities)
-                  + " |")
-    print(f"\n| train s; whole run (train + eval commands) min; SSIM full/object | "
-          + " | ".join(f"i{i}" for i in intensities) + " |")
-    print("|---|" + "---|" * len(intensities))
-    for s in sensors:
-        for meth in methods:
-            cells = []
-            for i in intensities:
-                m = results.get(f"{s}/{i}/{meth}")
-                cells.append("–" if m is None else f"{m['train_seconds']:.0f} s; {_run_minutes(m)}; "
-                             f"{m['ssim']:.3f}/{m['ssim_object']:.3f}")
-            print(f"| {s}: {meth} | " + " | ".join(cells) + " |")
+def _metric(key: str) -> bool:
+    return key.split("_")[0] in ("psnr", "ssim", "lpips")
+
+
+def _commit() -> str:
+    res = subprocess.run(["git", "-C", str(REPO), "rev-parse", "--short", "HEAD"], capture_output=True, text=True)
+    dirty = subprocess.run(["git", "-C", str(REPO), "status", "--porcelain", "--untracked-files=no"],
+                           capture_output=True, text=True).stdout.strip()
+    return res.stdout.strip() + ("+changes" if dirty else "")
+
+
+def cells(args):
+    """Every run asked for: each method with what it knows, and (``--calibrated``) the methods that use
+    maps once more with calibrated maps instead of the true ones."""
+    variants = [(m, KNOWLEDGE[m]) for m in args.methods]
+    if args.calibrated:
+        variants += [(m, "calibrated maps") for m in args.methods if KNOWLEDGE[m] == "true maps"]
+    for data, sensor, i, (method, knows), seed in itertools.product(args.data, args.sensors, args.intensities,
+                                                                    variants, args.seeds):
+        yield data, sensor, i, {"data": data, "sensor": sensor, "intensity": i, "method": method,
+                                "knowledge": knows, "resolution": args.resolution, "seed": seed,
+                                "iterations": args.iters, "frames": args.frames}
 
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--resolution", type=int, default=400)
+    ap.add_argument("--data", default="lego", help="lego and/or procedural scenes (chair,ficus,...)")
+    ap.add_argument("--scene-views", default="100,0,50", help="train,val,test views of a procedural scene")
     ap.add_argument("--intensities", default="16,32,64")
-    ap.add_argument("--sensors", default="rsir,paper")
+    ap.add_argument("--sensors", default="rsir,paper,calibrated")
     ap.add_argument("--methods", default=",".join(METHODS))
-    ap.add_argument("--iters", type=int, default=0, help="0 = the trainer's default")
+    ap.add_argument("--seeds", default="0,1,2")
+    ap.add_argument("--iters", type=int, default=3000, help="the trainer's default; stated in every row")
+    ap.add_argument("--frames", type=int, default=0, help="train from the first w frames (0 = all)")
+    ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
+                    "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
     ap.add_argument("--device", default="auto")
-    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", type=Path, default=REPO / "bench_out" / "protocol")
     args = ap.parse_args()
-    if not LEGO.is_dir():
-        sys.exit(f"{LEGO} not found: the real lego views are needed for this benchmark")
-    intensities = sorted(int(v) for v in args.intensities.split(","))
-    sensors, methods = args.sensors.split(","), args.methods.split(",")
-    results = {}
-    for s in sensors:
-        for i in intensities:
-            folder = convert(args.out, s, i, args.resolution)
-            for meth in methods:
-                run = args.out / f"runs_{args.resolution}" / f"{s}_i{i}_{meth}"
-                results[f"{s}/{i}/{meth}"] = train_eval(folder, run, meth, args)
-                m = results[f"{s}/{i}/{meth}"]
-                print(f"  {s} i{i} {meth}: PSNR {_cell(m)}, train {m['train_seconds']:.0f} s, "
-                      f"whole run {_run_minutes(m)}", flush=True)
-    (args.out / f"results_{args.resolution}.json").write_text(json.dumps(results, indent=1))
-    print_tables(results, intensities, sensors, methods, args.resolution)
+    args.data, args.sensors, args.methods = (v.split(",") for v in (args.data, args.sensors, args.methods))
+    args.intensities, args.seeds = ([int(v) for v in s.split(",")] for s in (args.intensities, args.seeds))
+    unknown = [m for m in args.methods if m not in KNOWLEDGE]
+    if unknown or ("lego" in args.data and not LEGO.is_dir()):
+        sys.exit(f"unknown methods {unknown}" if unknown else f"{LEGO} not found: the real lego is needed")
+    done = done_keys()
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    for data, sensor, i, cell in cells(args):
+        if tuple(cell[k] for k in KEY) in done:
+            continue
+        row = run_one(dataset(data, sensor, i, args), cell, args)
+        with RESULTS.open("a") as fh:
+            fh.write(json.dumps(row) + "\n")
+        print(f"  {data} {sensor} i{i} {cell['method']} seed {cell['seed']}: PSNR {row['metrics']['psnr']:.2f} / "
+              f"object {row['metrics']['psnr_object']:.2f}, train {row['train_seconds']:.0f} s", flush=True)
 
 
 if __name__ == "__main__":
