@@ -17,6 +17,7 @@ the same bytes; a folder holding another job's output is never overwritten.
 """
 from __future__ import annotations
 
+import math
 import os
 import shutil
 from dataclasses import dataclass, field, replace
@@ -89,7 +90,7 @@ def _open_nerf(root: Path) -> Source:
         frames, angle = doc.get("frames"), doc.get("camera_angle_x")
         if not isinstance(frames, list) or not frames:
             raise InputError(f"{jpath}: needs a non-empty list 'frames' (one per view)")
-        if not isinstance(angle, (int, float)) or not 0 < angle < 3.2:
+        if not isinstance(angle, (int, float)) or not 0 < angle < math.pi:
             raise InputError(f"{jpath}: needs 'camera_angle_x', the horizontal field of view in radians "
                              f"(0 < angle < pi), got {angle!r}")
         cam = float(angle) if cam is None else cam

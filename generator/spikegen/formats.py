@@ -323,8 +323,7 @@ class RenderDoc:
     def _header_problems(doc: dict, path: Path) -> list[str]:
         try:
             K, w, h = int(doc["subframes"]), int(doc["width"]), int(doc["height"])
-            cam, _ = float(doc["camera_angle_x"]), str(doc["scene"])
-            splits = doc["splits"]
+            cam, splits, _ = float(doc["camera_angle_x"]), doc["splits"], doc["scene"]  # all three required
         except (KeyError, TypeError, ValueError) as exc:
             return [f"{path}: missing or bad field {exc}"]
         msgs = []
@@ -451,8 +450,19 @@ class Transforms:
 
 
 # ---------------------------------------------------------------------- conversion
+class _Parameters:
+    """What decides a folder's bytes, as recorded in its manifest (or job file)."""
+
+    def to_json(self) -> dict:
+        return dataclasses.asdict(self)
+
+    def matches(self, recorded) -> bool:
+        """Whether a manifest's (or job file's) recorded parameters are these."""
+        return recorded == json.loads(json.dumps(self.to_json()))
+
+
 @dataclass(frozen=True)
-class ConvertParams:
+class ConvertParams(_Parameters):
     """What decides a dataset folder's bytes: the manifest's ``"parameters"``."""
 
     source: str
@@ -472,10 +482,6 @@ class ConvertParams:
         d = dataclasses.asdict(self)
         d["intensity"] = intensity_json(self.intensity)
         return d
-
-    def matches(self, recorded) -> bool:
-        """Whether a manifest's (or job file's) recorded parameters are these."""
-        return recorded == json.loads(json.dumps(self.to_json()))
 
     def spike_block(self) -> SpikeBlock:
         return SpikeBlock(self.height, self.width, self.frames, self.subframes, self.intensity, self.readout_hz)
@@ -624,7 +630,7 @@ class Intrinsics:
 
 
 @dataclass(frozen=True)
-class ImportParams:
+class ImportParams(_Parameters):
     """What decides an imported folder's bytes: the manifest's ``"parameters"``."""
 
     source: str  # the capture folder's name
@@ -642,9 +648,6 @@ class ImportParams:
         d = dataclasses.asdict(self)
         d["files"] = list(self.files)
         return d
-
-    def matches(self, recorded) -> bool:
-        return recorded == json.loads(json.dumps(self.to_json()))
 
 
 @dataclass(frozen=True, eq=False)

@@ -21,7 +21,7 @@ from __future__ import annotations
 
 import shutil
 import zlib
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 
 import numpy as np
@@ -53,7 +53,7 @@ def check_export(job: RenderJob, intensities, sensor: str, seed: int) -> list[st
     from .presets import get_sensor
 
     msgs = list(job.validate())
-    levels = [t for t in intensities]
+    levels = list(intensities)
     if not levels:
         msgs.append("give at least one --intensity")
     msgs += [m for m in (intensity_problem(i) for i in levels) if m]
@@ -99,7 +99,7 @@ def render_folder(out_dir, scene: str) -> Path:
 
 def view_paths(folder: Path, view: ViewRecord) -> tuple[Path, list[Path]]:
     """(PNG path, K EXR paths) of one view."""
-    placed = ViewRecord(view.split, view.index, view.pose, view.subframe_poses, folder)
+    placed = replace(view, root=folder, stem="")
     return placed.png, list(placed.exrs)
 
 
