@@ -16,7 +16,8 @@ skipped, so a long table is completed over several sessions; work folders live i
 ``--calibrated`` adds, for every method that uses the sensor's maps, a run with the maps of
 ``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
 real camera has) instead of the dataset's true maps. No setting is chosen here: every method runs
-with the trainer's defaults.
+with the trainer's defaults. ``oracle`` (not a spike method; it knows the ground-truth images of the
+train views) is the same field fitted to those images: what the field can represent.
 """
 from __future__ import annotations
 
@@ -33,12 +34,17 @@ from pathlib import Path
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_400"
 RESULTS = REPO / "bench" / "results" / "protocol.jsonl"
-METHODS = ["spikelik", "spikenerf-paper", "spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi"]
+METHODS = ["spikelik", "spikenerf-paper", "spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi", "oracle"]
+# The trainer's field, recorded in every row: rows made with another field are not the same run (rows
+# from before this key existed were made with the grid over the fixed cube [-1.5, 1.5]^3).
+FIELD = "grid, fitted box"
+OLD_FIELD = "grid, fixed cube"
 # What each method knows of the camera's fixed pattern: the dataset's own (true) R and dark current,
 # or nothing (it reconstructs images from the spikes, or assumes R = 1).
 KNOWLEDGE = {"spikelik": "true maps", "spikenerf-paper": "true maps", "spikenerf": "true maps",
-             "spikenerf-noR": "none", "tfp32": "none", "tfp256": "none", "tfi": "none"}
-KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed", "iterations", "frames")
+             "spikenerf-noR": "none", "tfp32": "none", "tfp256": "none", "tfi": "none",
+             "oracle": "ground-truth images"}
+KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed", "iterations", "frames", "field")
 CAL_INTENSITY, CAL_FRAMES = 64.0, 2000  # the simulated calibration recordings: a dark and two flats
 CAL_FLATS_X = (0.25, 0.75)  # flat radiances; their "lux" is the nominal rate X * I / 256 (spikes per frame)
 
@@ -97,12 +103,12 @@ def done_keys() -> set:
     if not RESULTS.is_file():
         return set()
     rows = [json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]
-    return {tuple(r[k] for k in KEY) for r in rows}
+    return {tuple(r.get(k, OLD_FIELD) if k == "field" else r[k] for k in KEY) for r in rows}
 
 
 def run_one(folder: Path, cell: dict, args) -> dict:
     """Train and evaluate one run; the results line."""
-    run = args.out / f"runs_{args.resolution}" / "_".join(str(cell[k]) for k in KEY).replace(" ", "-")
+    run = args.out / f"runs_{args.resolution}" / "_".join(str(cell[k]) for k in KEY).replace(" ", "-").replace(",", "")
     cmd = ["spikenerf", "train", str(folder), "--method", cell["method"], "--out", str(run), "--device",
            args.device, "--seed", str(cell["seed"]), "--quiet", "--iters", str(cell["iterations"])]
     if cell["frames"]:
@@ -144,7 +150,7 @@ def cells(args):
                                                                     variants, args.seeds):
         yield data, sensor, i, {"data": data, "sensor": sensor, "intensity": i, "method": method,
                                 "knowledge": knows, "resolution": args.resolution, "seed": seed,
-                                "iterations": args.iters, "frames": args.frames}
+                                "iterations": args.iters, "frames": args.frames, "field": FIELD}
 
 
 def main() -> None:

@@ -16,7 +16,9 @@ RESULTS = HERE / "results" / "protocol.jsonl"
 OUT = HERE / "PROTOCOL.md"
 INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
-METHODS = ("spikelik", "spikenerf-paper", "spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi")
+METHODS = ("spikelik", "spikenerf-paper", "spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi", "oracle")
+SPIKE_METHODS = METHODS[:-1]  # the plan's runs (the oracle is a reference, not planned per cell)
+FIELD, OLD_FIELD = "grid, fitted box", "grid, fixed cube"  # as bench_protocol.py records them
 # The table the protocol asks for: (resolution, data, sensors). Rows not yet run are listed as missing.
 PLAN = [(400, "lego", ("rsir", "paper", "calibrated")), (100, "lego", ("rsir", "paper", "calibrated"))]
 PAPER = {  # the paper's Table S3, lego, PSNR full / object: their data, their protocol, 400 x 400
@@ -44,8 +46,11 @@ number of seeds; per-view values are in the results file. LPIPS is null: no LPIP
 installed locally.
 
 **What each method knows** of the camera's fixed pattern: *true maps* = the dataset's own R and
-dark current (sensor.json); *none* = it assumes R = 1 or reconstructs images from the spikes.
-A real user has a calibration, not the true maps.
+dark current (sensor.json); *calibrated maps* = those of `spikegen calibrate` on simulated dark and
+flat recordings of the same camera; *none* = it assumes R = 1 or reconstructs images from the
+spikes. A real user has a calibration, not the true maps. `oracle` is not a spike method: the same
+field fitted to the train views' ground-truth images (it knows them), a reference for what the field
+can represent.
 
 **The paper's rows** are their numbers on their data under their protocol (400 x 400, their
 hold-out); they are not measured here and sit apart from ours. No sentence here claims a margin
@@ -111,7 +116,7 @@ def missing(rows: list) -> list[str]:
     out = []
     for res, data, sensors in PLAN:
         for sensor in sensors:
-            want = list(itertools.product(INTENSITIES, METHODS, SEEDS))
+            want = list(itertools.product(INTENSITIES, SPIKE_METHODS, SEEDS))
             gone = [w for w in want if (res, data, sensor) + w not in have]
             if gone:
                 out.append(f"- {data}, {sensor}, {res} x {res}: {len(gone)} of {len(want)} runs "
@@ -128,19 +133,30 @@ def paper_rows() -> list[str]:
     return out
 
 
-def main() -> None:
-    rows = load()
-    lines = [HEADER, "## The paper's numbers (not measured here)", ""] + paper_rows() + ["", "## Measured", ""]
+def measured(rows: list) -> list[str]:
     cells = defaultdict(list)
     for r in rows:
         cells[(r["resolution"], r["data"], r["sensor"])].append(r)
+    lines = []
     for (res, data, sensor) in sorted(cells, key=lambda c: (-c[0], c[1], c[2])):
         lines += section(res, data, sensor, cells[(res, data, sensor)])
-    if not rows:
-        lines += ["No run has been recorded yet.", ""]
-    lines += ["## Still missing", ""] + (missing(rows) or ["Nothing: every planned run is in the results file."])
+    return lines
+
+
+def main() -> None:
+    every = load()
+    rows = [r for r in every if r.get("field", OLD_FIELD) == FIELD]
+    old = [r for r in every if r.get("field", OLD_FIELD) != FIELD]
+    lines = [HEADER, "## The paper's numbers (not measured here)", ""] + paper_rows()
+    lines += ["", f"## Measured: the current trainer ({FIELD})", ""]
+    lines += measured(rows) or ["No run has been recorded yet.", ""]
+    if old:
+        lines += [f"## Measured with the earlier trainer ({OLD_FIELD}; superseded, kept for the record)", ""]
+        lines += measured(old)
+    lines += ["## Still missing (current trainer)", ""]
+    lines += missing(rows) or ["Nothing: every planned run is in the results file."]
     OUT.write_text("\n".join(lines) + "\n")
-    print(f"{OUT}: {len(rows)} runs")
+    print(f"{OUT}: {len(rows)} runs of the current trainer, {len(old)} earlier")
 
 
 if __name__ == "__main__":

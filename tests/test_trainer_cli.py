@@ -174,3 +174,37 @@ def test_sh_degree_from_the_command_line_and_resume_guard(dataset, tmp_path):
     res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(run), "--iters", "6", "--batch-rays", "256",
                                     "--device", "cpu", "--quiet"])
     assert res.exit_code == 2 and "sh_degree=0" in res.output and "Traceback" not in res.output
+
+
+def test_oracle_learns_the_sphere_from_its_images_and_needs_them(dataset, tmp_path):
+    """``--method oracle`` fits the train views' ground-truth images; a view whose PNG is a
+    reconstruction (an imported capture) has none: one line, exit 2, no run folder."""
+    from spikenerf.eval import evaluate
+
+    run = tmp_path / "oracle"
+    train(_cfg(dataset, method="oracle"), run, progress=False)
+    m = evaluate(run, progress=False)
+    assert m["method"] == "oracle" and m["psnr"] > 25
+    doc = json.loads((dataset / "transforms_train.json").read_text())
+    fake = tmp_path / "recon_ds"
+    import shutil
+    shutil.copytree(dataset, fake)
+    for fr in doc["frames"]:
+        fr["image_kind"] = "reconstruction"
+    (fake / "transforms_train.json").write_text(json.dumps(doc))
+    r = CliRunner().invoke(main, ["train", str(fake), "--method", "oracle", "--out", str(tmp_path / "bad"), "--quiet"])
+    assert r.exit_code == 2 and "no ground-truth image" in r.output and not (tmp_path / "bad").exists()
+
+
+def test_training_crops_the_grid_to_the_object(dataset, tmp_path):
+    """With the fitted box (the default for an object on white) the grid ends up over a box that
+    holds the sphere (radius 0.9) and is smaller than the cube [-1.5, 1.5]^3; without it, the cube."""
+    for fit, run in ((True, tmp_path / "fit"), (False, tmp_path / "cube")):
+        train(_cfg(dataset, fit_box=fit, iters=300), run, progress=False)
+        ck = torch.load(run / "checkpoint.pt", weights_only=False)
+        lo, hi = np.array(ck["field"]["aabb"])
+        if fit:
+            assert np.all(lo <= -RADIUS) and np.all(hi >= RADIUS) and np.all(hi - lo < 2.9), (lo, hi)
+            assert ck["config"]["fit_box"] is True
+        else:
+            assert np.allclose(lo, -1.5) and np.allclose(hi, 1.5)

@@ -60,3 +60,22 @@ def test_idealised_spikenerf_ignores_shot_noise_and_reset():
     x = torch.tensor([0.2, 0.5, 0.7, 0.95])
     plain = _loss("spikenerf", _batch(), x)[0]
     assert float(_loss("spikenerf", _batch(electrons=4.0, reset="zero"), x)[0]) == float(plain)
+
+
+def test_oracle_fits_the_srgb_encoding_of_the_ground_truth():
+    from spikegen.spikeio import linear_to_srgb
+    from spikenerf.train import linear_to_srgb as srgb_t
+
+    v = np.array([0.0, 0.002, 0.0031308, 0.2, 0.9, 1.0])
+    assert np.allclose(srgb_t(torch.tensor(v, dtype=torch.float64)).numpy(), linear_to_srgb(v), atol=1e-12)
+    tg = Targets(poses=np.tile(np.eye(4, dtype=np.float32), (2, 1, 1)),
+                 values=np.array([[0.1, 0.5, 1.0], [0.0, 0.3, 0.8]], np.float32), frames=np.zeros(2, np.float32),
+                 resp=np.ones(3, np.float32), dark=np.zeros(3, np.float32), height=1, width=3, kind="radiance")
+    batch = Batch(tg, torch.device("cpu"))
+    img, pix = torch.tensor([0, 1, 1]), torch.tensor([2, 0, 1])
+    x = torch.tensor([0.9, 0.05, 0.3], requires_grad=True)
+    loss = method_loss(METHODS["oracle"], x, img, pix, batch, INTENSITY)[0]
+    want = np.mean((linear_to_srgb([0.9, 0.05, 0.3]) - linear_to_srgb([1.0, 0.0, 0.3])) ** 2)
+    assert float(loss) == pytest.approx(want, rel=1e-5)
+    loss.backward()
+    assert torch.isfinite(x.grad).all() and x.grad[2] == 0 and x.grad[0] < 0 and x.grad[1] > 0

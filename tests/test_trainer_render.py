@@ -1,4 +1,5 @@
 """Rays, packed compositing and the grid field on small hand-checked cases."""
+import copy
 import math
 
 import numpy as np
@@ -189,3 +190,73 @@ def test_packed_samples_equal_a_ray_by_ray_march(spread):
     assert len(expect_rays) > 0
     assert ray_of.tolist() == expect_rays
     assert torch.allclose(pts, torch.stack(expect_pts), atol=1e-5)
+
+
+def test_fitted_box_ignores_a_floater_and_the_crop_keeps_the_field():
+    """The box of the solid grid points less their extreme 0.1 % per axis: one isolated solid
+    voxel far away (a floater, 1 of 1332) does not stretch it, faint haze does not count; cropping
+    cuts the grid values out exactly and rendering is unchanged."""
+    f = _cube_field(0.6)
+    with torch.no_grad():
+        f.grid[0, 1] = torch.linspace(-2, 2, 33)[:, None, None]  # luminance varies along x
+        f.grid[0, 0, 1, 1, 30] = 30.0  # a floater near a corner
+        f.grid[0, 0, 28:, :, :4] = f._raw_for_alpha(0.1)  # haze: sample alpha 0.1
+    pose = _look_from_z()
+    clean = copy.deepcopy(f)  # the same field without the floater and the haze
+    with torch.no_grad():
+        clean.grid[0, 0, 1, 1, 30] = -30.0
+        clean.grid[0, 0, 28:, :, :4] = -30.0
+    clean.update_occupancy(1e-3)
+    before, _ = render_image(clean, pose, 12, 12, 15.0)
+    lo, hi = f.fitted_box(alpha=0.3, trim=1e-3, pad=2)
+    v = f.voxel  # 3 / 32; the cube's points are indices 11..21
+    assert torch.allclose(lo, torch.full((3,), -1.5 + 9 * v)) and torch.allclose(hi, torch.full((3,), -1.5 + 23 * v))
+    pts = torch.tensor([[0.1, -0.2, 0.3], [-0.4, 0.45, 0.0]])
+    vals = f.sample_grid(pts)
+    f.crop(lo, hi)
+    f.update_occupancy(1e-3)
+    assert f.dims == (15, 15, 15) and f.occupancy.shape == (15, 15, 15)
+    assert f.voxel == pytest.approx(v) and f.grid_size == 33
+    assert torch.allclose(f.sample_grid(pts), vals, atol=1e-5)
+    assert torch.allclose(f.box, clean.box)  # the floater and the haze were cut off with the box
+    after, _ = render_image(f, pose, 12, 12, 15.0)
+    assert torch.allclose(before, after, atol=1e-5)
+
+
+def test_a_cropped_box_grows_with_cubic_voxels_and_round_trips():
+    f = _cube_field(0.6)
+    f.update_occupancy(1e-3)
+    f.crop(torch.tensor([-0.6, -0.6, -0.9]), torch.tensor([0.6, 0.6, 0.9]))
+    pts = torch.tensor([[0.0, 0.0, 0.0], [0.3, -0.2, 0.5]])
+    before = f.sample_grid(pts)
+    f.upsample(65)  # the voxel edge of 65 points across [-1.5, 1.5]: 3 / 64
+    assert f.grid_size == 65
+    edges = (f.aabb[1] - f.aabb[0]) / (torch.tensor(f.dims) - 1)
+    assert torch.allclose(edges, torch.full((3,), 3 / 64), atol=1e-6)
+    assert f.dims[2] > f.dims[0]  # the box is taller in z
+    assert torch.allclose(f.sample_grid(pts), before, atol=1e-4)
+    g = GridField(**f.config())
+    g.load_state_dict(f.state_dict())
+    assert torch.equal(g.grid, f.grid) and torch.equal(g.aabb, f.aabb) and g.dims == f.dims
+    o, d = torch.tensor([[0.2, 0.1, 4.0]]), torch.tensor([[0.0, 0.0, -1.0]])
+    with torch.no_grad():
+        assert torch.equal(render_rays(f, o, d)[0], render_rays(g, o, d)[0])
+
+
+def test_tv_at_points_is_the_neighbour_differences_where_the_step_read():
+    f = GridField(grid_size=5, final_size=5, bound=1.0)
+    with torch.no_grad():
+        f.grid[0, 0] = torch.arange(125.0).view(5, 5, 5)  # x stride 25, y 5, z 1
+        f.grid[0, 1] = torch.arange(125.0).view(5, 5, 5) ** 2 / 10
+    f.query(torch.tensor([[-0.3, 0.2, 0.6]]), torch.tensor([[0.0, 0.0, 1.0]]))  # grid position (1.4, 2.4, 3.2)
+    tv = f.tv_at_points(torch.Generator().manual_seed(0), n=16)
+    base = 1 * 25 + 2 * 5 + 3  # the lowest corner (1, 2, 3)
+    want = 0.0
+    for step in (25, 5, 1):
+        d0 = step  # channel 0 differs by the stride
+        d1 = ((base + step) ** 2 - base ** 2) / 10
+        want += (d0 ** 2 + d1 ** 2) / 2  # the mean over the two channels
+    assert float(tv) == pytest.approx(want, rel=1e-6)
+    tv.backward()
+    assert f.grid.grad[0, 0, 1, 2, 3] < 0 and f.grid.grad[0, 0, 2, 2, 3] > 0
+    assert torch.count_nonzero(f.grid.grad[0, 0]) == 4  # the corner and its three neighbours

@@ -228,3 +228,14 @@ def test_sparse_run_resumes_bit_for_bit(dataset, tmp_path, monkeypatch):
         assert torch.equal(ca["state"][key], cb["state"][key])
     for ga, gb in zip(ca["optimizer"]["grids"], cb["optimizer"]["grids"]):
         assert torch.equal(ga["exp_avg_sq"], gb["exp_avg_sq"]) and torch.equal(ga["touched_bits"], gb["touched_bits"])
+
+
+def test_sparse_reads_match_grid_sample_on_a_cropped_box():
+    f = _field(size=20)
+    f.crop(torch.tensor([-0.9, -0.5, -1.2]), torch.tensor([0.7, 0.8, 0.6]))
+    assert len(set(f.dims)) > 1
+    pts, dirs = _points(300, spread=0.45)
+    dense = f.query(pts, dirs)
+    f.sparse = True
+    sparse = f.query(pts, dirs)
+    assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(dense, sparse))

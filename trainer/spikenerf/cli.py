@@ -53,13 +53,22 @@ def main():
 @click.option("--batch-rays", default=TrainConfig.batch_rays, show_default=True, type=click.IntRange(min=1))
 @click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
               help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
+@click.option("--grid-final", default=TrainConfig.grid_final, show_default=True, type=click.IntRange(min=0),
+              help="Final grid resolution: points across the cube [-1.5, 1.5] (0 = chosen from the image width).")
+@click.option("--fit-box/--no-fit-box", default=TrainConfig.fit_box, show_default=True,
+              help="Crop the grid to the box the object occupies before each growth (an object on white; a "
+                   "scene that fills the frame keeps the whole box).")
+@click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),
+              help="Weight of the total-variation (smoothness) prior on the grids.")
+@click.option("--tv-points", default=TrainConfig.tv_points, show_default=True, type=click.IntRange(min=0),
+              help="Put the prior at the voxels of this many of each step's sample points (0 = a random block).")
 @click.option("--checkpoint-every", default=TrainConfig.checkpoint_every, show_default=True,
               type=click.IntRange(min=1),
               help=f"Save a checkpoint every N iterations (and at least every {TrainConfig.checkpoint_every_s:g} s).")
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, seed, batch_rays, sh_degree,
-          checkpoint_every, do_eval, quiet):
+          grid_final, fit_box, tv_weight, tv_points, checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
 
@@ -67,6 +76,7 @@ def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, 
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
                       frames=frames, seed=seed, batch_rays=batch_rays, sh_degree=sh_degree,
+                      grid_final=grid_final, fit_box=fit_box, tv_weight=tv_weight, tv_points=tv_points,
                       checkpoint_every=checkpoint_every, sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
                       else "")
     ck = run_train(cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True))

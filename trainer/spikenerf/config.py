@@ -23,10 +23,12 @@ class TrainConfig:
     grid_start: int = 32
     grid_final: int = 0  # 0 = chosen from the image size
     upsample_at: tuple = (0.1, 0.2, 0.3)  # fractions of iters at which the grid grows
+    fit_box: bool = True  # at each growth (from occupancy_after on) crop the grid to the occupied box first
     occupancy_every: int = 50
     occupancy_after: int = 100  # no pruning before this iteration (empty space must first be learned)
     occupancy_threshold: float = 2e-2
     tv_weight: float = 1e-4
+    tv_points: int = 0  # > 0: the prior at the voxels of this many of a step's sample points, not on a random block
     sh_degree: int = 1  # view-dependent luminance: spherical harmonics up to this degree (0 = none)
     sh_scale: int = 2  # the SH coefficients' grid is this many times coarser than the main grid
     checkpoint_every_s: float = 30.0

@@ -27,6 +27,10 @@
   (:func:`neuron.rsir_rate`: Poisson gray levels and the uniform quantisation noise make it
   compressive) replaces the linear rate. For a static view (all sub-frame poses equal) the
   windows share one pose, so it uses the whole stream as one window.
+- ``oracle``: not a spike method: the field fitted to the training views' ground-truth images
+  (MSE of the sRGB encodings, as evaluation compares), from the mid-exposure pose. It separates
+  what the spikes cost from what the field can represent, and needs a dataset whose train views
+  have ground-truth PNGs.
 """
 from __future__ import annotations
 
@@ -39,10 +43,12 @@ DEFAULT_METHOD = "spikelik"
 class Method:
     name: str
     target: str  # "counts" | "tfp" | "tfi" | "tfp-gamma" (the published targets: (count / w) ** (1/2.2), 8-bit)
+    #              | "truth" (the ground-truth image: the oracle)
     windows: int = 1  # count windows per view (moving camera)
     use_resp: bool = True  # apply R (and d) in the sensor
     tfp_frames: int = 0
     loss: str = "mse"  # "mse" (rate or radiance units) | "nll" (Gaussian, count units) | "paper" (published pixel)
+    #                    | "srgb" (MSE of sRGB encodings)
     exact_sensor: bool = False  # the dataset's own sensor: rsir's exact mean charge, shot noise, reset
 
 
@@ -54,4 +60,5 @@ METHODS = {
     "tfp32": Method("tfp32", "tfp", tfp_frames=32, use_resp=False),
     "tfp256": Method("tfp256", "tfp", tfp_frames=256, use_resp=False),
     "tfi": Method("tfi", "tfi", use_resp=False),
+    "oracle": Method("oracle", "truth", use_resp=False, loss="srgb"),
 }

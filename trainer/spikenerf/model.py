@@ -1,7 +1,8 @@
 """The radiance field: a dense voxel grid (the DVGO / Plenoxels family), optionally with a tiny MLP.
 
-One grid ``[1, 1 + C, G, G, G]`` holds raw density (channel 0) and luminance (the sensor is
-monochrome); a point's values are read by trilinear interpolation (``grid_sample``).
+One grid ``[1, 1 + C, Nx, Ny, Nz]`` of cubic voxels holds raw density (channel 0) and luminance
+(the sensor is monochrome) over an axis-aligned box (``aabb``, at first the cube
+``[-bound, bound]^3``); a point's values are read by trilinear interpolation (``grid_sample``).
 Luminance is ``sigmoid`` of channel 1 (the degree-0 term) plus, with ``sh_degree`` 1 or 2
 (the trainer's default is 1), a view-dependent term: real spherical harmonics of the viewing
 direction weighted by coefficients read from a second grid ``sh_scale`` times coarser
@@ -9,8 +10,9 @@ direction weighted by coefficients read from a second grid ``sh_scale`` times co
 small and fits less noise). With ``features > 0`` instead, C feature channels feed a small
 MLP of the features and the viewing direction (about 19x slower per iteration on 2 CPU
 cores). The grid is
-upsampled during training (coarse to fine); an occupancy mask of the grid lets the renderer
-skip empty space. The constructor arguments are stored in checkpoints (:meth:`config`).
+upsampled during training (coarse to fine) and may be cropped to the box the object occupies
+(:meth:`GridField.crop`, DVGO's fitted bounding box: the voxels then follow the object, not the
+cube); an occupancy mask of the grid lets the renderer skip empty space. The constructor arguments are stored in checkpoints (:meth:`config`).
 
 With the opt-in lazy optimiser (``train.SPARSE_ABOVE_VOXELS``) the trainer switches a field to
 sparse mode (``sparse = True``): points are then sampled by
@@ -44,66 +46,85 @@ def sh_basis(dirs: torch.Tensor, degree: int) -> torch.Tensor:
 
 
 class GridField(nn.Module):
-    """Field over the box ``[-bound, bound]^3``.
+    """Field over the box ``aabb`` (default the cube ``[-bound, bound]^3``).
 
     ``query(points [M, 3], dirs [M, 3]) -> (sigma [M] per reference voxel, x [M] in [0, 1])``.
+    ``grid_size``: the number of grid points across the cube ``[-bound, bound]`` at the current
+    voxel edge (the grid's resolution; its own point counts per axis are ``dims``).
     """
 
     def __init__(self, grid_size: int = 32, final_size: int = 128, features: int = 0, hidden: int = 48,
                  bound: float = 1.5, alpha_init: float = 1e-2, step_ratio: float = 0.5, sh_degree: int = 0,
-                 sh_scale: int = 2):
+                 sh_scale: int = 2, aabb: list | None = None, dims: list | None = None):
         super().__init__()
         if features and sh_degree:
             raise ValueError("features (MLP) and sh_degree are alternatives; give one")
         if sh_degree not in (0, 1, 2):
             raise ValueError(f"sh_degree must be 0, 1 or 2, got {sh_degree}")
+        if (aabb is None) != (dims is None):
+            raise ValueError("aabb and dims come together")
+        if aabb is None:
+            aabb, dims = [[-bound] * 3, [bound] * 3], [grid_size] * 3
+        dims = [int(n) for n in dims]
         self.args = dict(grid_size=grid_size, final_size=final_size, features=features, hidden=hidden,
                          bound=bound, alpha_init=alpha_init, step_ratio=step_ratio, sh_degree=sh_degree,
                          sh_scale=sh_scale)
         self.bound, self.final_size, self.step_ratio = bound, final_size, step_ratio
         self.sh_degree, self.sh_scale = sh_degree, sh_scale
         self.shift = _shift_for(alpha_init, step_ratio)
-        self.grid = nn.Parameter(torch.zeros(1, 1 + max(1, features), grid_size, grid_size, grid_size))
+        self.register_buffer("aabb", torch.tensor(aabb, dtype=torch.float32))  # the grid's box [2, 3], world
+        self.grid = nn.Parameter(torch.zeros(1, 1 + max(1, features), *dims))
         # View-dependent part: the SH coefficients above degree 0, on a grid sh_scale times coarser.
-        n_sh, S = (sh_degree + 1) ** 2 - 1, self._sh_size(grid_size)
-        self.sh = nn.Parameter(torch.zeros(1, n_sh, S, S, S)) if sh_degree else None
+        n_sh = (sh_degree + 1) ** 2 - 1
+        self.sh = nn.Parameter(torch.zeros(1, n_sh, *self._sh_dims(dims))) if sh_degree else None
         self.mlp = nn.Sequential(nn.Linear(features + 9, hidden), nn.ReLU(), nn.Linear(hidden, hidden), nn.ReLU(),
                                  nn.Linear(hidden, 1)) if features else nn.Sequential()
-        self.register_buffer("occupancy", torch.ones(grid_size, grid_size, grid_size, dtype=torch.bool))
-        self.register_buffer("box", torch.tensor([[-bound] * 3, [bound] * 3]))  # occupied box [2, 3], world
+        self.register_buffer("occupancy", torch.ones(*dims, dtype=torch.bool))
+        self.register_buffer("box", self.aabb.clone())  # occupied box [2, 3], world
         # Sparse mode (the lazy optimiser's): grids are read by gathering the 8 corners of each point, and
         # each read made with gradients enabled is recorded on ``tape`` as (grid, its distinct flat
         # voxel indices [U] sorted, leaf values [C, U]) for optim.LazyGridAdam; no dense gradient is
         # ever formed.
         self.sparse = False
         self.tape: list = []
+        self.last_points: torch.Tensor | None = None
 
-    def _sh_size(self, grid_size: int) -> int:
-        return max(8, round(grid_size / self.sh_scale))
+    def _sh_dims(self, dims) -> list[int]:
+        return [max(8, round(n / self.sh_scale)) for n in dims]
 
     def grids(self) -> list:
         """The voxel parameters (the grid, and the SH grid if any): one optimiser group."""
         return [self.grid] + ([self.sh] if self.sh is not None else [])
 
     def config(self) -> dict:
-        return dict(self.args, grid_size=self.grid_size)
+        return dict(self.args, grid_size=self.grid_size, aabb=self.aabb.tolist(), dims=list(self.dims))
+
+    @property
+    def dims(self) -> tuple[int, int, int]:
+        """Grid points along x, y, z."""
+        return tuple(int(n) for n in self.grid.shape[2:])
 
     @property
     def grid_size(self) -> int:
-        return int(self.grid.shape[-1])
+        return int(round(2 * self.bound / self.voxel)) + 1
 
     @property
     def voxel(self) -> float:
-        """Edge of a voxel of the current grid, world units."""
-        return 2 * self.bound / (self.grid_size - 1)
+        """Edge of a (cubic) voxel of the current grid, world units."""
+        return float((self.aabb[1, 0] - self.aabb[0, 0]) / (self.dims[0] - 1))
 
     @property
     def ref_voxel(self) -> float:
         return 2 * self.bound / (self.final_size - 1)
 
+    def unit(self, points: torch.Tensor) -> torch.Tensor:
+        """World points [M, 3] -> [-1, 1]^3 over the grid's box (x, y, z order)."""
+        lo, hi = self.aabb
+        return (points - lo) * (2 / (hi - lo)) - 1
+
     def normalise(self, points: torch.Tensor) -> torch.Tensor:
         """World points [M, 3] -> grid_sample coordinates in [-1, 1] (x, y, z -> last, middle, first axis)."""
-        return (points / self.bound).flip(-1)
+        return self.unit(points).flip(-1)
 
     def sample_grid(self, points: torch.Tensor) -> torch.Tensor:
         """Trilinear values [M, 1 + C] of the main grid at world points [M, 3]."""
@@ -113,7 +134,7 @@ class GridField(nn.Module):
         """Trilinear values [M, C] of ``grid`` at world points [M, 3] (sparse or dense path)."""
         if not self.sparse:
             return _trilinear(grid, self.normalise(points))
-        idx, w = corners(points / self.bound, grid.shape[-1])
+        idx, w = corners(self.unit(points), grid.shape[2:])
         flat = grid.detach().view(grid.shape[1], -1)
         if torch.is_grad_enabled() and grid.requires_grad:
             # the distinct voxels, sorted (gathers from the big grid then run in address order),
@@ -127,6 +148,8 @@ class GridField(nn.Module):
         return (vals.view(-1, *w.shape) * w).sum(-1).t()
 
     def query(self, points: torch.Tensor, dirs: torch.Tensor):
+        if torch.is_grad_enabled():  # the points a training step reads (tv_at_points puts its prior there)
+            self.last_points = points.detach()
         vals = self._read(self.grid, points)
         sigma = F.softplus(vals[:, 0] + self.shift)
         if self.sh is not None:  # channel 1 is the degree-0 term (a logit); the SH grid adds the rest
@@ -139,13 +162,15 @@ class GridField(nn.Module):
         return sigma, x
 
     def occupied(self, points: torch.Tensor) -> torch.Tensor:
-        """bool [M]: the nearest grid point of each world point is marked occupied."""
-        G = self.occupancy.shape[0]
-        half = 0.5 * (G - 1)
-        cell = (points * (half / self.bound)).add_(half).round_().clamp_(0, G - 1)
-        if G > 256:  # the flat index below is exact in float32 only up to G^3 = 2^24
+        """bool [M]: the nearest grid point of each world point is marked occupied (points outside
+        the grid's box read the nearest face)."""
+        X, Y, Z = self.dims
+        top = points.new_tensor([X - 1, Y - 1, Z - 1])
+        cell = ((points - self.aabb[0]) * (1 / self.voxel)).round_().clamp_(min=0)
+        cell = torch.minimum(cell, top)
+        if X * Y * Z > 2 ** 24:  # the flat index below is exact in float32 only up to 2^24
             cell = cell.double()
-        flat = (cell @ cell.new_tensor([G * G, G, 1.0])).long()  # one dot product
+        flat = (cell @ cell.new_tensor([Y * Z, Z, 1.0])).long()  # one dot product
         return self.occupancy.reshape(-1)[flat]
 
     @torch.no_grad()
@@ -156,12 +181,15 @@ class GridField(nn.Module):
         Alpha rises with the raw density, so the test is made on the raw grid against the raw value
         whose alpha is ``threshold`` (one comparison per voxel, no transcendental functions), and
         the dilation is three 1-D passes on booleans."""
-        k = self.step_ratio * self.voxel / self.ref_voxel  # sigma -> optical depth of one sample
-        sigma_min = -math.log1p(-threshold) / k  # alpha = 1 - exp(-sigma k) > threshold <=> sigma > this
-        raw_min = math.log(math.expm1(sigma_min)) - self.shift  # softplus(raw + shift) > sigma_min
-        self.occupancy = _dilate(self.grid[0, 0] > raw_min)
+        self.occupancy = _dilate(self.grid[0, 0] > self._raw_for_alpha(threshold))
         self._update_box()
         return float(self.occupancy.float().mean())
+
+    def _raw_for_alpha(self, alpha: float) -> float:
+        """The raw grid value above which a sample of the current grid has alpha above ``alpha``."""
+        k = self.step_ratio * self.voxel / self.ref_voxel  # sigma -> optical depth of one sample
+        sigma_min = -math.log1p(-alpha) / k  # alpha = 1 - exp(-sigma k) > threshold <=> sigma > this
+        return math.log(math.expm1(sigma_min)) - self.shift  # softplus(raw + shift) > sigma_min
 
     def _update_box(self) -> None:
         """The smallest box holding every occupied grid point, padded by one voxel."""
@@ -173,21 +201,69 @@ class GridField(nn.Module):
                 return
             lo.append(planes[0, 0])
             hi.append(planes[-1, 0])
-        lo = (torch.stack(lo).float() - 1) * self.voxel - self.bound
-        hi = (torch.stack(hi).float() + 1) * self.voxel - self.bound
-        self.box = torch.stack([lo, hi]).clamp(-self.bound, self.bound).to(self.box)
+        lo = (torch.stack(lo).float() - 1) * self.voxel + self.aabb[0]
+        hi = (torch.stack(hi).float() + 1) * self.voxel + self.aabb[0]
+        self.box = torch.max(torch.min(torch.stack([lo, hi]), self.aabb[1]), self.aabb[0]).to(self.box)
 
     @torch.no_grad()
     def upsample(self, size: int) -> None:
-        """Resample the grid to ``size^3`` (trilinear); occupancy follows by nearest."""
-        new = F.interpolate(self.grid.data, size=(size, size, size), mode="trilinear", align_corners=True)
+        """Resample the grid to the voxel edge of ``size`` points across the cube ``[-bound, bound]``
+        (trilinear), over the same box (its upper corner moves by less than a voxel so that voxels
+        stay cubic); the SH grid follows at ``sh_scale`` times coarser, occupancy by nearest."""
+        voxel = 2 * self.bound / (size - 1)
+        lo, hi = self.aabb
+        dims = [int(round(float(e) / voxel)) + 1 for e in hi - lo]
+        aabb = torch.stack([lo, lo + voxel * (torch.tensor(dims, dtype=lo.dtype, device=lo.device) - 1)])
+        self._resample(aabb, dims)
+
+    @torch.no_grad()
+    def crop(self, lo: torch.Tensor, hi: torch.Tensor) -> None:
+        """Shrink the grid's box to the grid points that cover ``[lo, hi]`` (clipped to the box):
+        the values are cut out, not resampled, and the voxel edge is unchanged."""
+        v, a = self.voxel, self.aabb
+        top = torch.tensor(self.dims, device=a.device) - 1
+        i0 = ((lo - a[0]) / v).floor().long().clamp(min=0)
+        i1 = torch.minimum(((hi - a[0]) / v).ceil().long(), top)
+        if bool((i1 - i0 < 1).any()):
+            return  # nothing to crop to: keep the box
+        sl = tuple(slice(int(p), int(q) + 1) for p, q in zip(i0, i1))
+        self.grid = nn.Parameter(self.grid.data[(slice(None), slice(None)) + sl].contiguous())
+        self.occupancy = self.occupancy[sl].contiguous()
+        self.aabb = torch.stack([a[0] + i0 * v, a[0] + i1 * v]).to(a)
+        if self.sh is not None:  # resampled onto the new box (its coarser points do not nest)
+            new = self._sh_dims(self.dims)
+            self.sh = nn.Parameter(_resample_grid(self.sh.data, a, self.aabb, new))
+        self._update_box()
+
+    def _resample(self, aabb: torch.Tensor, dims: list[int]) -> None:
+        if torch.equal(aabb, self.aabb):  # the same box: F.interpolate samples exactly these points
+            new = F.interpolate(self.grid.data, size=tuple(dims), mode="trilinear", align_corners=True)
+        else:
+            new = _resample_grid(self.grid.data, self.aabb, aabb, dims)
         self.grid = nn.Parameter(new)
         if self.sh is not None:
-            S = self._sh_size(size)
-            self.sh = nn.Parameter(F.interpolate(self.sh.data, size=(S, S, S), mode="trilinear", align_corners=True))
-        occ = F.interpolate(self.occupancy[None, None].float(), size=(size,) * 3, mode="nearest")[0, 0]
+            S = self._sh_dims(dims)
+            self.sh = nn.Parameter(_resample_grid(self.sh.data, self.aabb, aabb, S))
+        occ = F.interpolate(self.occupancy[None, None].float(), size=tuple(dims), mode="nearest")[0, 0]
         self.occupancy = occ > 0
+        self.aabb = aabb.to(self.aabb)
         self._update_box()
+
+    @torch.no_grad()
+    def fitted_box(self, alpha: float = 0.3, trim: float = 1e-3, pad: int = 2) -> tuple[torch.Tensor, torch.Tensor]:
+        """(lo [3], hi [3]) world: the box of the grid points whose sample alpha exceeds ``alpha``
+        (solid matter, not the faint haze an object on white leaves in empty space), each axis
+        trimmed of the ``trim`` fraction of them at either end (isolated floaters do not stretch
+        it) and padded by ``pad`` voxels. No such point: the grid's box."""
+        pts = (self.grid[0, 0] > self._raw_for_alpha(alpha)).nonzero().float()  # [n, 3] grid indices
+        if pts.shape[0] == 0:
+            return self.aabb[0].clone(), self.aabb[1].clone()
+        if pts.shape[0] > 2 ** 24:  # torch.quantile's limit: an even subsample
+            pts = pts[torch.linspace(0, pts.shape[0] - 1, 2 ** 24, device=pts.device).long()]
+        ends = torch.quantile(pts, torch.tensor([trim, 1 - trim], device=pts.device), dim=0)
+        lo = self.aabb[0] + (ends[0].floor() - pad) * self.voxel
+        hi = self.aabb[0] + (ends[1].ceil() + pad) * self.voxel
+        return lo, hi
 
     def tv_loss(self, generator: torch.Generator | None = None, block: int = 24) -> torch.Tensor:
         """Total variation (squared differences) on a random ``block^3`` sub-grid: a smoothness prior.
@@ -195,6 +271,30 @@ class GridField(nn.Module):
         The SH grid (if any) gets the same prior on its own random block. In sparse mode the block
         is read as a leaf and recorded on the tape (its gradient stays the size of the block)."""
         return sum(_tv(g, block, generator, self.tape if self.sparse else None) for g in self.grids())
+
+    def tv_at_points(self, generator: torch.Generator | None = None, n: int = 8192) -> torch.Tensor:
+        """Total variation where the last training query read: for ``n`` of its points drawn at
+        random (with replacement), the squared differences between the grid point below each (its
+        lowest corner) and that point's next neighbour along x, y and z, averaged per axis and summed
+        over the axes and the grids (the SH grid's on its own points). The prior then lies on
+        the surfaces the rays see, wherever the grid is large, at a cost set by ``n`` (the random
+        block of :meth:`tv_loss` covers a vanishing part of a large grid). Dense mode only."""
+        pts = self.last_points
+        if pts is None or pts.shape[0] == 0:
+            return self.grid.sum() * 0.0
+        pick = torch.randint(0, pts.shape[0], (n,), generator=generator).to(pts.device)
+        unit = self.unit(pts[pick])
+        total = 0.0
+        for g in self.grids():
+            X, Y, Z = g.shape[2:]
+            top = unit.new_tensor([X - 1, Y - 1, Z - 1])
+            base = torch.minimum(((unit + 1) * (0.5 * top)).floor().clamp_(min=0), top - 1).long()
+            stride = torch.tensor([Y * Z, Z, 1], device=unit.device)
+            flat = (base * stride).sum(-1)
+            values = g.view(g.shape[1], -1)
+            v0 = values.index_select(1, flat)
+            total = total + sum((values.index_select(1, flat + int(s)) - v0).square().mean() for s in stride)
+        return total
 
 
 CPU_SPLIT = 2  # points are sampled as this many batches on the CPU (a fixed number: bit-reproducible)
@@ -226,14 +326,14 @@ def split_count(grid: torch.Tensor, points: int) -> int:
 
 
 def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None) -> torch.Tensor:
-    G = grid.shape[-1]
-    b = min(block, G)
-    starts = torch.randint(0, G - b + 1, (3,), generator=generator).tolist()
-    sub = grid[:, :, starts[0]:starts[0] + b, starts[1]:starts[1] + b, starts[2]:starts[2] + b]
+    dims = grid.shape[2:]
+    b = [min(block, n) for n in dims]
+    starts = [int(torch.randint(0, n - c + 1, (1,), generator=generator)) for n, c in zip(dims, b)]
+    sub = grid[:, :, starts[0]:starts[0] + b[0], starts[1]:starts[1] + b[1], starts[2]:starts[2] + b[2]]
     if tape is not None and torch.is_grad_enabled():  # a leaf copy of the block; its voxels' flat index
-        axes = [torch.arange(s, s + b, device=grid.device) for s in starts]
-        idx = ((axes[0] * G)[:, None, None] + axes[1][None, :, None]) * G + axes[2][None, None, :]
-        leaf = sub.detach().reshape(grid.shape[1], -1).clone().requires_grad_(True)  # [C, b^3]
+        axes = [torch.arange(s, s + c, device=grid.device) for s, c in zip(starts, b)]
+        idx = ((axes[0] * dims[1])[:, None, None] + axes[1][None, :, None]) * dims[2] + axes[2][None, None, :]
+        leaf = sub.detach().reshape(grid.shape[1], -1).clone().requires_grad_(True)  # [C, block voxels]
         tape.append((grid, idx.view(-1), leaf))
         sub = leaf.view(sub.shape)
     return sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean()
@@ -242,20 +342,33 @@ def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None) -> 
 _CORNER_BITS = torch.tensor([[d, h, w] for d in (0, 1) for h in (0, 1) for w in (0, 1)], dtype=torch.bool)  # [8, 3]
 
 
-def corners(unit: torch.Tensor, size: int) -> tuple[torch.Tensor, torch.Tensor]:
-    """The 8 grid points around each point and their trilinear weights, for a ``size^3`` grid over
-    ``[-1, 1]^3``: flat index ``[M, 8]`` (axis 0 of the grid <- x, as :meth:`GridField.occupied`)
-    and weights ``[M, 8]`` of points ``unit [M, 3]``. Points are clamped into the grid (the
-    renderer's samples lie inside it; ``grid_sample`` with ``align_corners=True`` agrees there)."""
-    pos = ((unit + 1) * (0.5 * (size - 1))).clamp_(0, size - 1)
-    base = pos.floor().clamp_(max=size - 2)
+def corners(unit: torch.Tensor, dims) -> tuple[torch.Tensor, torch.Tensor]:
+    """The 8 grid points around each point and their trilinear weights, for a grid of ``dims``
+    points (an int: the same along x, y, z) over ``[-1, 1]^3``: flat index ``[M, 8]`` (axis 0 of
+    the grid <- x, as :meth:`GridField.occupied`) and weights ``[M, 8]`` of points ``unit [M, 3]``.
+    Points are clamped into the grid (the renderer's samples lie inside it; ``grid_sample`` with
+    ``align_corners=True`` agrees there)."""
+    X, Y, Z = (dims,) * 3 if isinstance(dims, int) else (int(n) for n in dims)
+    top = unit.new_tensor([X - 1, Y - 1, Z - 1])
+    pos = torch.minimum(((unit + 1) * (0.5 * top)).clamp_(min=0), top)
+    base = torch.minimum(pos.floor(), top - 1)
     frac = pos - base  # [M, 3] in [0, 1]
-    stride = torch.tensor([size * size, size, 1], device=unit.device)
+    stride = torch.tensor([Y * Z, Z, 1], device=unit.device)
     flat0 = (base.long() * stride).sum(-1)  # [M]
     bits = _CORNER_BITS.to(unit.device)
     idx = flat0[:, None] + (bits.long() * stride).sum(-1)  # [M, 8]
     w = torch.where(bits, frac[:, None, :], 1 - frac[:, None, :]).prod(-1)  # [M, 8]
     return idx, w
+
+
+def _resample_grid(grid: torch.Tensor, old: torch.Tensor, new: torch.Tensor, dims) -> torch.Tensor:
+    """``grid [1, C, ...]`` over the box ``old [2, 3]`` resampled (trilinear, edge values beyond
+    it) at the points of a ``dims`` grid over the box ``new [2, 3]``."""
+    axes = [torch.linspace(float(a), float(b), int(n), device=grid.device) for a, b, n in zip(new[0], new[1], dims)]
+    pts = torch.stack(torch.meshgrid(*axes, indexing="ij"), dim=-1)  # [X, Y, Z, 3] world
+    coords = ((pts - old[0]) * (2 / (old[1] - old[0])) - 1).flip(-1)
+    out = F.grid_sample(grid, coords[None], mode="bilinear", padding_mode="border", align_corners=True)
+    return out.contiguous()
 
 
 def _dilate(mask: torch.Tensor) -> torch.Tensor:

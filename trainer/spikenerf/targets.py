@@ -15,7 +15,10 @@ from tqdm import tqdm
 from spikegen import recon
 from spikegen.presets import bit_camera
 
-from .data import Dataset, area_resize, interpolate_pose, load_sensor_maps, read_view_spikes
+from spikegen.errors import InputError
+
+from .data import (Dataset, area_resize, ground_truth, has_ground_truth, interpolate_pose, load_sensor_maps,
+                   read_view_spikes)
 from .methods import Method
 
 
@@ -56,6 +59,10 @@ def _pose(view, a: int, b: int, frames: int) -> np.ndarray:
 def view_images(ds: Dataset, view, method: Method, height: int, width: int, frames: int | None = None):
     """[(pose [4,4], value [H,W], frames)] of one view for ``method``, from its first ``frames`` frames."""
     w = frames or ds.frames
+    if method.target == "truth":
+        if not has_ground_truth(view):
+            raise InputError(f"{ds.root}: train view {view.name} has no ground-truth image; --method oracle needs one")
+        return [(_pose(view, 0, ds.frames, ds.frames), ground_truth(view, height, width)[0], 0.0)]
     spikes = read_view_spikes(ds, view)[:w]
     if method.target == "counts":
         out = []

@@ -112,6 +112,8 @@ def method_loss(method, x, img, pix, batch: Batch, intensity: float):
     ``spikenerf-paper`` the gamma-encoded rate of its targets), for the progress bar's PSNR."""
     obs = batch.values[img, pix]
     if batch.tg.kind == "radiance":
+        if method.loss == "srgb":
+            return (linear_to_srgb(x) - linear_to_srgb(obs)).square().mean(), x, obs
         return (x - obs).square().mean(), x, obs
     if batch.tg.kind == "paper":
         pred = neuron.paper_pixel(x, intensity, *(m[pix] for m in batch.paper_maps))
@@ -129,6 +131,13 @@ def method_loss(method, x, img, pix, batch: Batch, intensity: float):
     else:
         loss = ((mu - obs) * to_x).square().mean()
     return loss, mu * to_x, obs * to_x
+
+
+def linear_to_srgb(v: torch.Tensor) -> torch.Tensor:
+    """The sRGB encoding (spikeio.linear_to_srgb) of linear values, differentiable (the power's slope
+    is bounded by evaluating it at 0.0031308 and above only)."""
+    v = v.clamp(min=0)
+    return torch.where(v <= 0.0031308, v * 12.92, 1.055 * v.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
 
 
 def iteration_generator(seed: int, it: int) -> torch.Generator:
@@ -157,6 +166,7 @@ def load_checkpoint(path: Path, device) -> dict:
 def field_from_checkpoint(ck: dict, device) -> GridField:
     field = GridField(**ck["field"]).to(device)
     state = dict(ck["state"])
+    state.setdefault("aabb", field.aabb)  # checkpoints from before the fitted box: the cube
     if "occupancy_bits" in state:  # stored packed by save_checkpoint (older checkpoints hold the bool grid)
         shape = field.occupancy.shape
         bits = np.unpackbits(state.pop("occupancy_bits").cpu().numpy(), count=field.occupancy.numel())
@@ -177,10 +187,11 @@ def checkpoint_camera(ck: dict) -> tuple:
 def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> None:
     # checkpoints from before SH was added have no SH keys: they are degree 0 (the scale is then moot);
     # those from before --frames used every frame of the stream
-    old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "", **ck["config"]}
+    old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
+           "fit_box": False, **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale", "frames", "sensor_maps"):
+                "sh_scale", "frames", "sensor_maps", "fit_box"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
@@ -199,7 +210,8 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     method = METHODS[cfg.method]
     ds = load_dataset(cfg.dataset)
     H, W = _resolution(ds, cfg.resolution)
-    cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames))
+    # the fitted box is for an object on white; a scene that fills the frame (an imported capture) keeps its box
+    cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame)
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
     tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None)
@@ -274,7 +286,8 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         x, _ = render_rays(field, o, d, jitter, background)  # the composite the sensor model sees
         loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
         if cfg.tv_weight > 0:
-            loss = loss + cfg.tv_weight * field.tv_loss(gen)
+            tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)
+            loss = loss + cfg.tv_weight * tv
         _check_loss(loss, it, ck_path, bar)
         for g, base in zip(opt.param_groups, (cfg.lr_grid, cfg.lr_mlp)):
             g["lr"] = base * learning_rate_factor(it, cfg.iters)
@@ -320,10 +333,20 @@ def _mlp_adam(opt) -> torch.optim.Optimizer | None:
     return opt.mlp if isinstance(opt, LazyGridAdam) else opt
 
 
+# The fitted box (GridField.fitted_box): the extent per axis of the grid points whose sample alpha
+# exceeds BOX_ALPHA, less the BOX_TRIM fraction of them at either end (floaters), plus BOX_PAD voxels
+# of the grid being cropped. Chosen on the procedural lego (docs/trainer.md, "The fitted box").
+BOX_ALPHA, BOX_TRIM, BOX_PAD = 0.3, 1e-3, 2
+
+
 def _grow(field, opt, cfg, schedule, it):
-    """Upsample the grid where the schedule says (a new optimizer state for the grid)."""
+    """Upsample the grid where the schedule says (a new optimizer state for the grid); with
+    ``fit_box``, from ``occupancy_after`` on, the grid is first cropped to the box the occupied
+    space fills (DVGO's fitted bounding box), so that the finer grid spends its voxels there."""
     for at, size in schedule:
         if it == at and field.grid_size < size:
+            if cfg.fit_box and it >= cfg.occupancy_after:
+                field.crop(*field.fitted_box(BOX_ALPHA, BOX_TRIM, BOX_PAD))
             field.upsample(size)
             if it >= cfg.occupancy_after:
                 field.update_occupancy(cfg.occupancy_threshold)

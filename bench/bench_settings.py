@@ -1,0 +1,90 @@
+"""Choosing the trainer's settings on a procedural scene (never on the views that are reported).
+
+    python bench/bench_settings.py DATASET --name NAME --iters 1500 [-- TRAIN OPTIONS...]
+    python bench/bench_settings.py --table          # the markdown table of bench/results/settings.jsonl
+
+Trains ``spikenerf train DATASET --iters N --out <work>/NAME [TRAIN OPTIONS]``, evaluates it on the
+dataset's held-out views (``spikenerf eval``) and appends one line to
+``bench/results/settings.jsonl``: the name, the options, the dataset, iterations, training and
+evaluation seconds, the load average before and after, the code version (``git describe --dirty``)
+and the metrics (full image, object alpha > 0 and > 0.5, background; PSNR and SSIM). The dataset
+is meant to be one of the project's own procedural scenes (``spikegen render``, moving camera), so
+that no setting is chosen on the real lego's views (bench/PROTOCOL.md). Speed figures are only
+comparable between runs made side by side (the load average is recorded).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+REPO = Path(__file__).resolve().parents[1]
+RESULTS = REPO / "bench" / "results" / "settings.jsonl"
+METRICS = ("psnr", "psnr_object", "psnr_object50", "psnr_background", "ssim", "ssim_object")
+
+
+def _version() -> str:
+    res = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=REPO, capture_output=True, text=True)
+    return res.stdout.strip() or "unknown"
+
+
+def run(dataset: Path, name: str, iters: int, options: list[str], work: Path) -> dict:
+    out = work / name
+    load0 = os.getloadavg()[0]
+    t0 = time.perf_counter()
+    subprocess.run(["spikenerf", "train", str(dataset), "--iters", str(iters), "--out", str(out), "--quiet", *options],
+                   check=True)
+    t1 = time.perf_counter()
+    subprocess.run(["spikenerf", "eval", str(out), "--quiet"], check=True, stdout=subprocess.DEVNULL)
+    t2 = time.perf_counter()
+    m = json.loads((out / "metrics.json").read_text())
+    return {"name": name, "options": options, "dataset": str(dataset), "iterations": iters,
+            "train_s": round(t1 - t0, 1), "eval_s": round(t2 - t1, 1), "views": m["views"],
+            "load": [round(load0, 2), round(os.getloadavg()[0], 2)], "version": _version(),
+            "metrics": {k: m[k] for k in METRICS}}
+
+
+def _load(pair) -> str:
+    return " → ".join("?" if v is None else f"{v:.1f}" for v in pair)
+
+
+def table(rows: list[dict]) -> str:
+    out = ["| run | options | iterations | train s | eval s | load | PSNR full | object | object50 | background "
+           "| SSIM full | object |", "|" + "---|" * 12]
+    for r in rows:
+        m = r["metrics"]
+        out.append(f"| {r['name']} | `{' '.join(r['options']) or '(defaults)'}` | {r['iterations']} | {r['train_s']:.0f} "
+                   f"| {r['eval_s']:.0f} | {_load(r['load'])} | {m['psnr']:.2f} | "
+                   f"{m['psnr_object']:.2f} | {m['psnr_object50']:.2f} | {m['psnr_background']:.2f} | {m['ssim']:.3f} "
+                   f"| {m['ssim_object']:.3f} |")
+    return "\n".join(out)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("dataset", nargs="?", type=Path)
+    ap.add_argument("--name")
+    ap.add_argument("--iters", type=int, default=1500)
+    ap.add_argument("--work", type=Path, default=REPO / "bench_out" / "settings")
+    ap.add_argument("--table", action="store_true", help="print the table of the results file and stop")
+    ap.add_argument("options", nargs=argparse.REMAINDER, help="after --: options for spikenerf train")
+    args = ap.parse_args()
+    if args.table:
+        print(table([json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]))
+        return
+    if args.dataset is None or not args.name:
+        sys.exit("give DATASET and --name (or --table)")
+    options = [o for o in args.options if o != "--"]
+    row = run(args.dataset.resolve(), args.name, args.iters, options, args.work)
+    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    with RESULTS.open("a") as fh:
+        fh.write(json.dumps(row) + "\n")
+    print(table([row]))
+
+
+if __name__ == "__main__":
+    main()
