@@ -2,7 +2,7 @@
 
     python bench/bench_import.py CAPTURE --size WxH --truth TRUTH.json --work DIR
         [--recon tfi --recon tfp] [--frames N] [--calibration PREFIX] [--plot PNG] [--view PNG]
-        [--train ITERS [--resolution W]]
+        [--train ITERS [--resolution W] [--heldout PNG]]
 
 CAPTURE: a folder of spike files named ``r_<i>.dat`` (a dataset's ``train/`` folder, e.g. one
 made by ``spikegen render --rig handheld``); TRUTH: the ``render.json`` of that render or a
@@ -31,6 +31,7 @@ poses (:func:`true_pose_dataset`: ``DIR/<recon>_truth``), and print each field's
 the difference. Imported views have no ground truth, so both fields are scored against each held-out
 view's own long-window reconstruction (the same reference images for both); each field renders the
 held-out views at the poses of its own dataset (SfM's, or the truth's moved into the import's frame).
+``--heldout PNG``: the second held-out view, reconstruction | imported poses | true poses.
 """
 from __future__ import annotations
 
@@ -136,7 +137,21 @@ def train_both(row: dict, args) -> dict:
         train(TrainConfig(dataset=str(ds), iters=args.train, resolution=args.resolution, device="cpu", seed=0),
               run, progress=False, log=lambda *a: None)
         out[name] = evaluate(run, device="cpu", progress=False)
+        out[name]["run"] = run
     return out
+
+
+def heldout_picture(metrics: dict, path: str) -> None:
+    """The second held-out view side by side: its reconstruction | rendered from the field trained
+    on imported poses | from the field trained on true poses (eval's ``<view>_gt_vs_pred.png``)."""
+    from spikegen.spikeio import read_png, write_png
+
+    view = metrics["imported"]["per_view"][1]["view"].replace("/", "_")
+    pairs = [read_png(metrics[k]["run"] / "eval_test" / f"{view}_gt_vs_pred.png")[..., 0]
+             for k in ("imported", "true poses")]
+    width = (pairs[0].shape[1] - 4) // 2  # reference | 4-pixel gap | prediction
+    gap = np.ones((pairs[0].shape[0], 4))
+    write_png(path, np.concatenate([pairs[0][:, :width], gap, pairs[0][:, -width:], gap, pairs[1][:, -width:]], axis=1))
 
 
 def report_training(row: dict, metrics: dict) -> None:
@@ -207,6 +222,7 @@ def main() -> None:
     ap.add_argument("--view", default=None)
     ap.add_argument("--train", type=int, default=0, help="Also train ITERS iterations from imported and true poses.")
     ap.add_argument("--resolution", type=int, default=200, help="Training width (with --train).")
+    ap.add_argument("--heldout", default=None, help="With --train: a held-out view, reconstruction | imported | true.")
     args = ap.parse_args()
     rows = [measure(args, recon) for recon in args.recon or ["tfi", "tfp"]]
     report(rows)
@@ -218,7 +234,10 @@ def main() -> None:
     if args.view:
         shutil.copyfile(rows[0]["out"] / (rows[0]["first"] + ".png"), args.view)
     if args.train:
-        report_training(rows[0], train_both(rows[0], args))
+        metrics = train_both(rows[0], args)
+        report_training(rows[0], metrics)
+        if args.heldout:
+            heldout_picture(metrics, args.heldout)
 
 
 if __name__ == "__main__":
