@@ -421,8 +421,8 @@ def full_pose_similarity(c2w_est: np.ndarray, c2w_true: np.ndarray, depth: float
     patch (a forward-facing rig); the orientations fix it. Solved by block coordinate descent from
     the orientation-only rotation: ``t`` in closed form, then ``R`` for fixed ``s`` (a Procrustes
     problem on ``s A + depth^2 / 2 B``, ``A = sum (c_i - mean c) (c^_i - mean c^)^T``, ``B = sum R_i
-    R^_i^T``) and ``s = trace(R^T A) / sum |c^_i - mean c^|^2`` for fixed ``R``, in turn; each step
-    lowers ``E``, and it stops when ``s`` and ``R`` no longer change (at most ``iters`` rounds)."""
+    R^_i^T``) and ``s = trace(R^T A) / sum |c^_i - mean c^|^2`` for fixed ``R``, in turn; no step
+    raises ``E``, and it stops when ``s`` and ``R`` no longer change (at most ``iters`` rounds)."""
     ce, ct = c2w_est[:, :3, 3], c2w_true[:, :3, 3]
     a_est, a_true = ce - ce.mean(axis=0), ct - ct.mean(axis=0)
     a = a_true.T @ a_est
