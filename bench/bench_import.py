@@ -2,18 +2,41 @@
 
     python bench/bench_import.py CAPTURE --size WxH --truth TRUTH.json --work DIR
         [--recon tfi --recon tfp] [--frames N] [--calibration PREFIX] [--plot PNG] [--view PNG]
+        [--train ITERS [--resolution W] [--heldout PNG] [--perturb DEG] [--reuse-runs]]
 
 CAPTURE: a folder of spike files named ``r_<i>.dat`` (a dataset's ``train/`` folder, e.g. one
 made by ``spikegen render --rig handheld``); TRUTH: the ``render.json`` of that render or a
 NeRF-synthetic ``transforms_train.json`` (view i is its i-th train entry). The import never reads
 TRUTH. For each ``--recon`` the capture is imported into ``DIR/<recon>`` and the recovered poses
-are compared with the true ones after the similarity (Umeyama) that best maps the recovered camera
-centres onto the true ones. Prints per method: views registered, median and 90th-percentile
-rotation error (degrees) and camera-centre error (% of the rig's extent: the largest distance
-between two true camera centres), the median rotation error after aligning the orientations
-alone (``rot*``), the focal length found, and the import's wall time. ``--plot``: the recovered (aligned)
-camera centres against the true ones, seen from above and from the side, for the first method;
-``--view``: a copy of that method's image (PNG) of the first registered view.
+are compared with the true ones after two similarity alignments (``spikegen.importer.pose_errors``),
+both printed:
+
+- **centres**: the similarity (Umeyama) that best maps the recovered camera centres onto the true ones;
+- **full pose**: the similarity fitted to the whole poses (``full_pose_similarity``): centres and
+  orientations, an orientation error theta weighed as the centre error ``depth * theta``, ``depth``
+  the median distance of the true cameras from the world origin, where both truth formats put the
+  scene (the handheld rig and NeRF-synthetic cameras look at it).
+
+Prints per method and alignment: views registered, median and 90th-percentile rotation error
+(degrees) and camera-centre error (% of the rig's extent: the largest distance between two true
+camera centres); and the median rotation error after aligning the orientations alone (``rot*``),
+the focal length found, and the import's wall time. ``--plot``: the recovered camera centres
+(after both alignments) against the true ones, seen from above and from the side, for the first
+method; ``--view``: a copy of that method's image (PNG) of the first registered view.
+
+``--train ITERS``: for the first method, also train the default method (``spikenerf train``, CPU,
+seed 0, at ``--resolution``) twice, on the imported dataset and on the same dataset with the true
+poses (:func:`true_pose_dataset`: ``DIR/<recon>_truth``), and print each field's held-out PSNR
+(``spikenerf eval``; the trainer holds out every 8th registered view, the same views in both) and
+the difference, and the best constant image's PSNR. Imported views have no ground truth, so both
+fields are scored against each held-out view's own long-window reconstruction (the same reference
+images for both); each field renders the held-out views at the poses of its own dataset (SfM's, or
+the truth's moved into the import's frame).
+``--heldout PNG``: the second held-out view, reconstruction | imported poses | true poses.
+``--perturb DEG``: a third run, on the true poses each turned by DEG degrees about a random axis
+(seed 0; centres kept): what a known pose error costs, to show the comparison can see one.
+``--reuse-runs``: keep a run folder whose checkpoint already has ITERS iterations and its metrics
+(the import is deterministic, so a rerun writes the same datasets) instead of training it again.
 """
 from __future__ import annotations
 
@@ -25,7 +48,7 @@ from pathlib import Path
 
 import numpy as np
 
-from spikegen.importer import import_capture, pose_errors, umeyama
+from spikegen.importer import import_capture, pose_errors
 from spikegen.spikeio import parse_size
 
 TARGETS = {"registered": 0.90, "rotation_deg": 0.5, "centre_pct": 1.0}
@@ -48,26 +71,172 @@ def measure(args, recon: str) -> dict:
     index = [int(Path(f["source_file"]).stem.split("_")[-1]) for f in doc["frames"]]
     truth = true_poses(Path(args.truth))[index]
     est = np.array([f["transform_matrix"] for f in doc["frames"]])
-    err = pose_errors(est, truth)
-    return {"recon": recon, "registered": len(index), "views": len(index) + len(doc["unregistered"]),
-            "rot_med": float(np.median(err["rotation_deg"])), "rot_p90": float(np.percentile(err["rotation_deg"], 90)),
-            "rot_orient_med": float(np.median(err["rotation_own_deg"])),
-            "ctr_med": 100 * float(np.median(err["centre_frac"])),
-            "ctr_p90": 100 * float(np.percentile(err["centre_frac"], 90)), "wall_s": wall_s, "fl_x": doc["fl_x"],
-            "est": est, "truth": truth, "out": out, "first": doc["frames"][0]["file_path"]}
+    row = {"recon": recon, "registered": len(index), "views": len(index) + len(doc["unregistered"]),
+           "wall_s": wall_s, "fl_x": doc["fl_x"], "est": est, "truth": truth, "out": out,
+           "first": doc["frames"][0]["file_path"]}
+    row.update(summarise(pose_errors(est, truth, scene_depth(truth))))
+    return row
+
+
+def scene_depth(truth: np.ndarray) -> float:
+    """The median distance of the true cameras from the world origin (the scene's centre in a
+    render.json or NeRF-synthetic frame): the depth at which the full-pose fit weighs orientations."""
+    return float(np.median(np.linalg.norm(truth[:, :3, 3], axis=1)))
+
+
+def summarise(err: dict) -> dict:
+    """Medians and 90th percentiles of ``pose_errors``'s per-view errors (centres in % of the extent)."""
+    out = {"rot_orient_med": float(np.median(err["rotation_own_deg"])), "err": err}
+    for key, name in (("", "ctr"), ("_full", "full")):
+        rot, ctr = err[f"rotation{key}_deg"], 100 * err[f"centre{key}_frac"]
+        out[name] = {"rot_med": float(np.median(rot)), "rot_p90": float(np.percentile(rot, 90)),
+                     "ctr_med": float(np.median(ctr)), "ctr_p90": float(np.percentile(ctr, 90))}
+    return out
+
+
+def true_pose_dataset(imported: Path, truth_json: Path, row: dict, out: Path) -> Path:
+    """``out``: the imported dataset with the true poses and intrinsics in place of SfM's.
+
+    The true poses are moved into the imported dataset's normalised frame by the inverse of the
+    full-pose similarity (``row["err"]["similarity_full"]``, imported -> true): ``c = R^T (c_true -
+    t) / s``, ``R = R^T R_true``, so both fields see the scene at the same place in the trainer's box.
+    The intrinsics are the truth's (``fl = w / (2 tan(camera_angle_x / 2))``, principal point at the
+    image centre); every other key (views, order, spike block, near/far, sensor) is the import's,
+    and ``train/`` is a link to the import's own (the same spike files)."""
+    s, rot, t = row["err"]["similarity_full"]
+    doc = json.loads((imported / "transforms_train.json").read_text())
+    truth_doc = json.loads(truth_json.read_text())
+    fl = 0.5 * doc["w"] / np.tan(0.5 * truth_doc["camera_angle_x"])
+    to_import = np.eye(4)
+    to_import[:3, :3], to_import[:3, 3] = rot.T / s, -rot.T @ t / s  # p_import = to_import p_true
+    for frame, true_c2w in zip(doc["frames"], row["truth"]):
+        pose = np.eye(4)
+        pose[:3, :3], pose[:3, 3] = rot.T @ true_c2w[:3, :3], to_import[:3, :3] @ true_c2w[:3, 3] + to_import[:3, 3]
+        frame["transform_matrix"] = pose.tolist()
+        frame["subframe_transform_matrices"] = [pose.tolist()]
+    doc.update({"camera_angle_x": float(truth_doc["camera_angle_x"]), "fl_x": fl, "fl_y": fl,
+                "cx": doc["w"] / 2.0, "cy": doc["h"] / 2.0, "poses_from": "truth",
+                "normalising_transform": to_import.tolist()})
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    (out / "train").symlink_to((imported / "train").resolve(), target_is_directory=True)
+    for name in ("sensor.json", "sensor.npz", "config.yaml"):
+        if (imported / name).is_file():
+            shutil.copyfile(imported / name, out / name)
+    (out / "transforms_train.json").write_text(json.dumps(doc, indent=1))
+    return out
+
+
+def perturbed_dataset(true_ds: Path, degrees: float, out: Path, seed: int = 0) -> Path:
+    """``out``: the true-pose dataset with each view's orientation turned by ``degrees`` about a
+    random axis (uniform on the sphere, camera axes; drawn from ``seed``), its centre kept."""
+    doc = json.loads((true_ds / "transforms_train.json").read_text())
+    rng = np.random.default_rng(seed)
+    for frame in doc["frames"]:
+        axis = rng.standard_normal(3)
+        axis /= np.linalg.norm(axis)
+        k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+        theta = np.radians(degrees)
+        turn = np.eye(3) + np.sin(theta) * k + (1 - np.cos(theta)) * k @ k
+        pose = np.array(frame["transform_matrix"])
+        pose[:3, :3] = pose[:3, :3] @ turn
+        frame["transform_matrix"], frame["subframe_transform_matrices"] = pose.tolist(), [pose.tolist()]
+    doc["poses_from"] = f"truth, each turned by {degrees} degrees"
+    shutil.rmtree(out, ignore_errors=True)
+    out.mkdir(parents=True)
+    for item in (true_ds / "train", *(true_ds / n for n in ("sensor.json", "sensor.npz", "config.yaml"))):
+        if item.is_symlink():
+            (out / item.name).symlink_to(item.resolve(), target_is_directory=True)
+        elif item.is_file():
+            shutil.copyfile(item, out / item.name)
+    (out / "transforms_train.json").write_text(json.dumps(doc, indent=1))
+    return out
+
+
+def train_both(row: dict, args) -> dict:
+    """Train the default method on the imported dataset and on its true-pose twin (and with
+    ``--perturb`` on the true poses turned); held-out metrics."""
+    from spikenerf.config import TrainConfig
+    from spikenerf.eval import evaluate
+    from spikenerf.train import load_checkpoint, train
+
+    truth = true_pose_dataset(row["out"], Path(args.truth), row, Path(f"{row['out']}_truth"))
+    datasets = {"imported": row["out"], "true poses": truth}
+    if args.perturb:
+        datasets[f"turned {args.perturb:g} deg"] = perturbed_dataset(truth, args.perturb,
+                                                                     Path(f"{row['out']}_turned"))
+    out = {}
+    for name, ds in datasets.items():
+        run = Path(args.work) / f"run_{row['recon']}_{name.replace(' ', '_')}"
+        done = (args.reuse_runs and (run / "metrics.json").is_file() and (run / "checkpoint.pt").is_file()
+                and load_checkpoint(run / "checkpoint.pt", "cpu")["iteration"] == args.train)
+        if done:
+            out[name] = json.loads((run / "metrics.json").read_text())
+        else:
+            shutil.rmtree(run, ignore_errors=True)
+            train(TrainConfig(dataset=str(ds), iters=args.train, resolution=args.resolution, device="cpu", seed=0),
+                  run, progress=False, log=lambda *a: None)
+            out[name] = evaluate(run, device="cpu", progress=False)
+        out[name]["run"] = run
+    return out
+
+
+def constant_psnr(dataset: Path, width: int) -> float:
+    """Mean held-out PSNR of the best constant image (the mean of the held-out references) at the
+    training size: what a field must beat to have learnt anything."""
+    from spikegen.spikeio import linear_to_srgb
+    from spikenerf.data import load_dataset
+    from spikenerf.eval import reference
+    from spikenerf.metrics import psnr
+
+    ds = load_dataset(dataset)
+    height = ds.height * width // ds.width
+    refs = [linear_to_srgb(reference(ds, v, height, width)[1]) for v in ds.splits["test"]]
+    c = float(np.mean(refs))
+    return float(np.mean([psnr(np.full_like(r, c), r) for r in refs]))
+
+
+def heldout_picture(metrics: dict, path: str) -> None:
+    """The second held-out view side by side: its reconstruction | rendered from the field trained
+    on imported poses | from the field trained on true poses (eval's ``<view>_gt_vs_pred.png``)."""
+    from spikegen.spikeio import read_png, write_png
+
+    view = metrics["imported"]["per_view"][1]["view"].replace("/", "_")
+    pairs = [read_png(metrics[k]["run"] / "eval_test" / f"{view}_gt_vs_pred.png")[..., 0]
+             for k in ("imported", "true poses")]
+    width = (pairs[0].shape[1] - 4) // 2  # reference | 4-pixel gap | prediction
+    gap = np.ones((pairs[0].shape[0], 4))
+    write_png(path, np.concatenate([pairs[0][:, :width], gap, pairs[0][:, -width:], gap, pairs[1][:, -width:]], axis=1))
+
+
+def report_training(row: dict, metrics: dict) -> None:
+    imp, tru = metrics["imported"], metrics["true poses"]
+    print(f"training ({row['recon']}, {imp['method']}, {imp['iterations']} iterations, "
+          f"{imp['resolution'][1]} x {imp['resolution'][0]}, held-out: {imp['views_from']}, {imp['views']} views, "
+          f"compared with: {imp['compared_with']})")
+    for name, m in metrics.items():
+        print(f"  {name:15} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.3f}  ({m['train_seconds']:.0f} s of training)")
+    print(f"  best constant image PSNR {constant_psnr(row['out'], imp['resolution'][1]):6.2f} dB")
+    gap = tru["psnr"] - imp["psnr"]
+    print(f"  true poses - imported: {gap:+.2f} dB  target (within 2 dB): {'met' if abs(gap) <= 2.0 else 'MISSED'}")
+    for i, a in enumerate(imp["per_view"]):
+        print(f"    {a['view']:12} "
+              + "  ".join(f"{name} {m['per_view'][i]['psnr']:6.2f}" for name, m in metrics.items()))
 
 
 def report(rows: list[dict]) -> None:
-    print(f"{'recon':6} {'registered':>12} {'rot med':>9} {'rot p90':>9} {'ctr med %':>10} {'ctr p90 %':>10} "
-          f"{'rot*':>6} {'fl_x px':>8} {'wall s':>7}  targets (>= 90 %, <= 0.5 deg, <= 1 %)")
+    print(f"{'recon':6} {'align':9} {'registered':>12} {'rot med':>9} {'rot p90':>9} {'ctr med %':>10} "
+          f"{'ctr p90 %':>10} {'rot*':>6} {'fl_x px':>8} {'wall s':>7}  targets (>= 90 %, <= 0.5 deg, <= 1 %)")
     for r in rows:
         frac = r["registered"] / r["views"]
-        met = (frac >= TARGETS["registered"], r["rot_med"] <= TARGETS["rotation_deg"],
-               r["ctr_med"] <= TARGETS["centre_pct"])
-        print(f"{r['recon']:6} {r['registered']:>5}/{r['views']:<3} {100 * frac:3.0f}% {r['rot_med']:9.3f} "
-              f"{r['rot_p90']:9.3f} {r['ctr_med']:10.3f} {r['ctr_p90']:10.3f} {r['rot_orient_med']:6.3f} "
-              f"{r['fl_x']:8.1f} {r['wall_s']:7.1f}  "
-              f"{' '.join('met' if m else 'MISSED' for m in met)}")
+        for name, label in (("ctr", "centres"), ("full", "full pose")):
+            a = r[name]
+            met = (frac >= TARGETS["registered"], a["rot_med"] <= TARGETS["rotation_deg"],
+                   a["ctr_med"] <= TARGETS["centre_pct"])
+            print(f"{r['recon']:6} {label:9} {r['registered']:>5}/{r['views']:<3} {100 * frac:3.0f}% "
+                  f"{a['rot_med']:9.3f} {a['rot_p90']:9.3f} {a['ctr_med']:10.3f} {a['ctr_p90']:10.3f} "
+                  f"{r['rot_orient_med']:6.3f} {r['fl_x']:8.1f} {r['wall_s']:7.1f}  "
+                  f"{' '.join('met' if m else 'MISSED' for m in met)}")
 
 
 def plot_path(row: dict, path: str) -> None:
@@ -76,18 +245,23 @@ def plot_path(row: dict, path: str) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    s, rot, t = umeyama(row["est"][:, :3, 3], row["truth"][:, :3, 3])
-    est = row["est"][:, :3, 3] @ (s * rot).T + t
     tru = row["truth"][:, :3, 3]
-    fig, axes = plt.subplots(1, 2, figsize=(10, 4.2))
+    fig, axes = plt.subplots(1, 2, figsize=(10, 4.4))
     for ax, (i, j, name) in zip(axes, ((0, 1, "from above (x, y)"), (0, 2, "from the side (x, z)"))):
         ax.plot(tru[:, i], tru[:, j], "o-", color="0.6", ms=5, lw=0.8, label="true (render.json)")
-        ax.plot(est[:, i], est[:, j], "x", color="C3", ms=6, label=f"recovered ({row['recon']}), aligned")
+        for key, label, mark, colour in (("similarity", "centres", "x", "C3"),
+                                         ("similarity_full", "full pose", "+", "C0")):
+            s, rot, t = row["err"][key]
+            est = row["est"][:, :3, 3] @ (s * rot).T + t
+            ax.plot(est[:, i], est[:, j], mark, color=colour, ms=6,
+                    label=f"recovered ({row['recon']}), {label} alignment")
         ax.set_title(name)
         ax.set_aspect("equal", adjustable="datalim")
     axes[0].legend(fontsize=8)
-    fig.suptitle(f"{row['registered']}/{row['views']} views registered; median centre error "
-                 f"{row['ctr_med']:.2f} % of the rig's extent, rotation {row['rot_med']:.2f} deg")
+    c, f = row["ctr"], row["full"]
+    fig.suptitle(f"{row['registered']}/{row['views']} views registered; median rotation / centre error: "
+                 f"{c['rot_med']:.2f} deg / {c['ctr_med']:.2f} % (centres), "
+                 f"{f['rot_med']:.2f} deg / {f['ctr_med']:.2f} % (full pose)", fontsize=10)
     fig.tight_layout()
     fig.savefig(path, dpi=90)
 
@@ -103,15 +277,26 @@ def main() -> None:
     ap.add_argument("--calibration", default=None)
     ap.add_argument("--plot", default=None)
     ap.add_argument("--view", default=None)
+    ap.add_argument("--train", type=int, default=0, help="Also train ITERS iterations from imported and true poses.")
+    ap.add_argument("--resolution", type=int, default=200, help="Training width (with --train).")
+    ap.add_argument("--heldout", default=None, help="With --train: a held-out view, reconstruction | imported | true.")
+    ap.add_argument("--perturb", type=float, default=0.0, help="With --train: also train on the true poses turned.")
+    ap.add_argument("--reuse-runs", action="store_true", help="With --train: keep finished runs.")
     args = ap.parse_args()
     rows = [measure(args, recon) for recon in args.recon or ["tfi", "tfp"]]
     report(rows)
-    print("rot / ctr: after the similarity fitted to the camera centres (Umeyama); rot*: after the rotation "
-          "fitted to the orientations")
+    print("centres: after the similarity fitted to the camera centres (Umeyama); full pose: after the similarity "
+          f"fitted to centres and orientations (orientations weighed at depth {rows[0]['err']['depth']:.3f}); "
+          "rot*: after the rotation fitted to the orientations alone")
     if args.plot:
         plot_path(rows[0], args.plot)
     if args.view:
         shutil.copyfile(rows[0]["out"] / (rows[0]["first"] + ".png"), args.view)
+    if args.train:
+        metrics = train_both(rows[0], args)
+        report_training(rows[0], metrics)
+        if args.heldout:
+            heldout_picture(metrics, args.heldout)
 
 
 if __name__ == "__main__":

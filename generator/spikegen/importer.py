@@ -44,6 +44,7 @@ MIN_REGISTERED = 3  # fewer registered views cannot make a dataset
 SFM_SEED = 0  # every random seed pycolmap takes
 INIT_MIN_TRI_ANGLE_DEG = 4.0  # COLMAP's 16 degrees is more than a handheld patch's baseline gives
 INIT_MIN_INLIERS = 50  # COLMAP's 100 is more than a small spike frame's features give
+MAX_REPROJ_ERROR_PX = 0.5  # tracks merged, completed and kept only within this (COLMAP: 4 px); measured, docs
 CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, principal point at the image centre (kept fixed)
 DEFAULT_RECONSTRUCTION = "tfp"  # chosen by measured pose accuracy (docs/real_captures.md)
 WHITE_PERCENTILE = 99.5  # the brightness shown as white in a view's PNG
@@ -165,7 +166,9 @@ def _pycolmap():
 
 
 def _sfm_options(pycolmap):
-    """(extraction, matching, verification, mapping) options: CPU, one thread, every seed fixed."""
+    """(extraction, matching, verification, mapping) options: CPU, one thread, every seed fixed; the
+    mapper keeps a 3D point's observation, and the triangulator merges and completes tracks, only
+    within :data:`MAX_REPROJ_ERROR_PX` of reprojection error."""
     extraction = pycolmap.FeatureExtractionOptions(num_threads=1, use_gpu=False)
     matching = pycolmap.FeatureMatchingOptions(num_threads=1, use_gpu=False)
     verification = pycolmap.TwoViewGeometryOptions()
@@ -175,6 +178,9 @@ def _sfm_options(pycolmap):
     mapping.mapper.init_min_tri_angle = INIT_MIN_TRI_ANGLE_DEG
     mapping.mapper.init_min_num_inliers = INIT_MIN_INLIERS
     mapping.triangulation.random_seed = SFM_SEED
+    mapping.mapper.filter_max_reproj_error = MAX_REPROJ_ERROR_PX
+    mapping.triangulation.merge_max_reproj_error = MAX_REPROJ_ERROR_PX
+    mapping.triangulation.complete_max_reproj_error = MAX_REPROJ_ERROR_PX
     return extraction, matching, verification, mapping
 
 
@@ -383,20 +389,84 @@ def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.nda
     return scale, rot, mu_d - scale * rot @ mu_s
 
 
-def pose_errors(c2w_est: np.ndarray, c2w_true: np.ndarray) -> dict:
-    """Errors of estimated camera-to-world poses ``[n, 4, 4]`` against the true ones after the
-    similarity that best maps the estimated camera centres onto the true ones: per view the
+def axes_focus(c2w: np.ndarray) -> np.ndarray:
+    """The point ``[3]`` nearest (least squares) to every camera's optical axis (the line through its
+    centre along its -Z): where a rig of cameras looks. ``ValueError`` when the axes are (nearly)
+    parallel, so that no such point is fixed."""
+    eye = np.eye(3)
+    proj = eye[None] - np.einsum("ni,nj->nij", c2w[:, :3, 2], c2w[:, :3, 2])  # onto each axis' normal plane
+    a, b = proj.sum(axis=0), np.einsum("nij,nj->i", proj, c2w[:, :3, 3])
+    if np.linalg.cond(a) > 1e8:
+        raise ValueError("the cameras' optical axes are parallel: give the scene's depth explicitly")
+    return np.linalg.solve(a, b)
+
+
+def _procrustes(m: np.ndarray) -> np.ndarray:
+    """The rotation ``R`` maximising ``trace(R^T m)`` (reflection excluded)."""
+    u, _, vt = np.linalg.svd(m)
+    return u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt)) or 1.0]) @ vt
+
+
+def full_pose_similarity(c2w_est: np.ndarray, c2w_true: np.ndarray, depth: float,
+                         iters: int = 100) -> tuple[float, np.ndarray, np.ndarray]:
+    """``(s, R [3, 3], t [3])`` minimising, over the views' whole poses,
+
+        E = sum_i |c_i - (s R c^_i + t)|^2 + depth^2 / 2 * sum_i |R_i - R R^_i|_F^2
+
+    (``c``, ``R_i``: true centre and orientation; ``^``: estimated). ``|R_i - R R^_i|_F^2 = 4 (1 -
+    cos theta)``, about ``2 theta^2`` for a small orientation error ``theta``, so the second term
+    weighs ``theta`` as the centre error ``depth * theta`` it equals at the scene's depth (``depth``,
+    in the true frame's units): a turn and a shift of the camera that move the scene's image alike
+    count alike. The centres alone fix the alignment's tilt poorly when they lie on a small flat
+    patch (a forward-facing rig); the orientations fix it. Solved by block coordinate descent from
+    the orientation-only rotation: ``t`` in closed form, then ``R`` for fixed ``s`` (a Procrustes
+    problem on ``s A + depth^2 / 2 B``, ``A = sum (c_i - mean c) (c^_i - mean c^)^T``, ``B = sum R_i
+    R^_i^T``) and ``s = trace(R^T A) / sum |c^_i - mean c^|^2`` for fixed ``R``, in turn; no step
+    raises ``E``, and it stops when ``s`` and ``R`` no longer change (at most ``iters`` rounds)."""
+    ce, ct = c2w_est[:, :3, 3], c2w_true[:, :3, 3]
+    a_est, a_true = ce - ce.mean(axis=0), ct - ct.mean(axis=0)
+    a = a_true.T @ a_est
+    b = np.einsum("nij,nkj->ik", c2w_true[:, :3, :3], c2w_est[:, :3, :3])
+    spread = max(float((a_est ** 2).sum()), 1e-300)
+    rot = _procrustes(b)
+    scale = max(float(np.trace(rot.T @ a)) / spread, 0.0)
+    for _ in range(iters):
+        new_rot = _procrustes(scale * a + 0.5 * depth ** 2 * b)
+        new_scale = max(float(np.trace(new_rot.T @ a)) / spread, 0.0)
+        done = np.allclose(new_rot, rot, rtol=0, atol=1e-14) and abs(new_scale - scale) <= 1e-14 * max(scale, 1.0)
+        rot, scale = new_rot, new_scale
+        if done:
+            break
+    return scale, rot, ct.mean(axis=0) - scale * rot @ ce.mean(axis=0)
+
+
+def pose_errors(c2w_est: np.ndarray, c2w_true: np.ndarray, depth: float | None = None) -> dict:
+    """Errors of estimated camera-to-world poses ``[n, 4, 4]`` against the true ones, per view: the
     rotation error (degrees) and the centre error as a fraction of the rig's extent (the largest
-    distance between two true camera centres). ``rotation_own_deg``: the rotation error after the
-    rotation that best maps the estimated orientations onto the true ones instead (the centres of a
-    flat handheld patch fix the alignment's tilt poorly; this measures the orientations alone)."""
-    s, rot, t = umeyama(c2w_est[:, :3, 3], c2w_true[:, :3, 3])
-    centres = c2w_est[:, :3, 3] @ (s * rot).T + t
+    distance between two true camera centres), after two alignments, both reported:
+
+    - ``rotation_deg``, ``centre_frac``: the similarity that best maps the estimated camera
+      centres onto the true ones (:func:`umeyama`; the centres alone);
+    - ``rotation_full_deg``, ``centre_full_frac``: the similarity fitted to the whole poses
+      (:func:`full_pose_similarity`, orientations weighed at the scene's ``depth``; default: the
+      median distance from the true centres to the point their optical axes converge on,
+      :func:`axes_focus`; returned as ``depth``).
+
+    ``rotation_own_deg``: the rotation error after the rotation that best maps the estimated
+    orientations onto the true ones (the orientations alone, no centres)."""
+    if depth is None:
+        depth = float(np.median(np.linalg.norm(c2w_true[:, :3, 3] - axes_focus(c2w_true), axis=1)))
     extent = max(float(np.max(np.linalg.norm(c2w_true[:, None, :3, 3] - c2w_true[None, :, :3, 3], axis=2))), 1e-12)
-    u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", c2w_true[:, :3, :3], c2w_est[:, :3, :3]))
-    own = u @ np.diag([1.0, 1.0, np.sign(np.linalg.det(u @ vt))]) @ vt  # best rotation of the orientations
-    return {"rotation_deg": _angle_deg(c2w_true, rot, c2w_est), "rotation_own_deg": _angle_deg(c2w_true, own, c2w_est),
-            "centre_frac": np.linalg.norm(centres - c2w_true[:, :3, 3], axis=1) / extent, "extent": extent}
+    out = {"extent": extent, "depth": depth}
+    for key, (s, rot, t) in (("", umeyama(c2w_est[:, :3, 3], c2w_true[:, :3, 3])),
+                             ("_full", full_pose_similarity(c2w_est, c2w_true, depth))):
+        centres = c2w_est[:, :3, 3] @ (s * rot).T + t
+        out[f"rotation{key}_deg"] = _angle_deg(c2w_true, rot, c2w_est)
+        out[f"centre{key}_frac"] = np.linalg.norm(centres - c2w_true[:, :3, 3], axis=1) / extent
+        out[f"similarity{key}"] = (s, rot, t)
+    out["rotation_own_deg"] = _angle_deg(c2w_true, _procrustes(
+        np.einsum("nij,nkj->ik", c2w_true[:, :3, :3], c2w_est[:, :3, :3])), c2w_est)
+    return out
 
 
 def _angle_deg(c2w_true: np.ndarray, rot: np.ndarray, c2w_est: np.ndarray) -> np.ndarray:
