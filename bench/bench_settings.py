@@ -71,14 +71,13 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=1500)
     ap.add_argument("--work", type=Path, default=REPO / "bench_out" / "settings")
     ap.add_argument("--table", action="store_true", help="print the table of the results file and stop")
-    ap.add_argument("options", nargs=argparse.REMAINDER, help="after --: options for spikenerf train")
-    args = ap.parse_args()
+    args, extra = ap.parse_known_args()  # the rest (after --) goes to spikenerf train
     if args.table:
         print(table([json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]))
         return
     if args.dataset is None or not args.name:
         sys.exit("give DATASET and --name (or --table)")
-    options = [o for o in args.options if o != "--"]
+    options = [o for o in extra if o != "--"]
     row = run(args.dataset.resolve(), args.name, args.iters, options, args.work)
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     with RESULTS.open("a") as fh:

@@ -260,3 +260,19 @@ def test_tv_at_points_is_the_neighbour_differences_where_the_step_read():
     tv.backward()
     assert f.grid.grad[0, 0, 1, 2, 3] < 0 and f.grid.grad[0, 0, 2, 2, 3] > 0
     assert torch.count_nonzero(f.grid.grad[0, 0]) == 4  # the corner and its three neighbours
+
+
+def test_the_block_prior_keeps_its_strength_per_voxel_on_a_cropped_grid():
+    """A block covers a larger share of a cropped grid; the prior is scaled by the grid's share of
+    the cube's points, so each voxel's expected prior is the cube's."""
+    f = GridField(grid_size=40, final_size=40)
+    with torch.no_grad():
+        f.grid.normal_(generator=torch.Generator().manual_seed(0))
+    full = f.tv_loss(torch.Generator().manual_seed(1), block=10)
+    assert f.grid_size == 40
+    f.crop(torch.tensor([-0.5, -0.5, -0.5]), torch.tensor([0.5, 0.5, 0.5]))
+    share = f.grid[0, 0].numel() / 40 ** 3
+    assert 0.03 < share < 0.06
+    crop = f.tv_loss(torch.Generator().manual_seed(1), block=10)
+    # i.i.d. values: the block's mean squared difference is the same anywhere, so the scaled prior is share x
+    assert float(crop) == pytest.approx(share * float(full), rel=0.15)

@@ -269,8 +269,12 @@ class GridField(nn.Module):
         """Total variation (squared differences) on a random ``block^3`` sub-grid: a smoothness prior.
 
         The SH grid (if any) gets the same prior on its own random block. In sparse mode the block
-        is read as a leaf and recorded on the tape (its gradient stays the size of the block)."""
-        return sum(_tv(g, block, generator, self.tape if self.sparse else None) for g in self.grids())
+        is read as a leaf and recorded on the tape (its gradient stays the size of the block).
+        Scaled by the grid's share of the cube's points at its resolution (1 for the cube): a block
+        covers a larger share of a cropped grid, so unscaled the prior on each voxel would grow as
+        the box shrinks; scaled, each voxel gets the prior it gets in the cube, in expectation."""
+        share = self.grid[0, 0].numel() / self.grid_size ** 3
+        return share * sum(_tv(g, block, generator, self.tape if self.sparse else None) for g in self.grids())
 
     def tv_at_points(self, generator: torch.Generator | None = None, n: int = 8192) -> torch.Tensor:
         """Total variation where the last training query read: for ``n`` of its points drawn at
