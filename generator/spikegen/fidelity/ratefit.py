@@ -188,11 +188,17 @@ class _RateProblem:
         theta, cov, lam_pred = solution
         a = float(theta[0])
         se_gamma = _gamma_se(lambda gm: self.fit_at(delta, gm, keep)[0], gamma, obj, int(keep.sum()))
+        _, linear = self.fit_at(delta, 1.0, keep)
+        if linear is None:
+            linear = solution
+        t1 = linear[0]
         return RateFit(a=a, gamma=gamma, c=float(theta[1] / a) if self.use_c else 0.0, d=float(theta[-1] / a),
                        delta=float(delta), fbar=self.fbar, use_c=self.use_c,
                        se_c=math.sqrt(float(cov[1, 1]) / a ** 2) if self.use_c else math.inf,
                        se_d=math.sqrt(float(cov[-1, -1])) / abs(a), se_gamma=se_gamma, objective=obj,
-                       lam_pred=lam_pred, isi=np.where(self.base_ok, self.isi, np.nan), keep=keep, outlier=outlier)
+                       lam_pred=lam_pred, isi=np.where(self.base_ok, self.isi, np.nan), keep=keep, outlier=outlier,
+                       linear=(float(t1[0]), float(t1[1] / t1[0]) if self.use_c else 0.0, float(t1[-1] / t1[0])),
+                       lam_linear=linear[2])
 
 
 def fit_rate_model(ctx: Context, flicker: FlickerFit | None, fbar: float, outlier: np.ndarray) -> RateFit:
@@ -212,11 +218,11 @@ def fit_rate_model(ctx: Context, flicker: FlickerFit | None, fbar: float, outlie
 
 # ---------------------------------------------------------------------- flicker
 def fit_flicker(ctx: Context, rate: RateFit | None) -> FlickerFit | None:
-    """Sinusoid in the population signal of unsaturated, non-outlier pixels (stats.fit_sine);
+    """Sinusoid in the population signal of unsaturated, non-outlier, static pixels (stats.fit_sine);
     the expected light comes from ``rate``, or (None) from the measured rates. None if fewer
     than 16 pixels qualify."""
     lam, weight, outlier = _light_weights(ctx, rate)
-    mask = (ctx.meas.rate < 0.45) & (lam < 0.6) & ~outlier & (ctx.meas.n >= 1)
+    mask = (ctx.meas.rate < 0.45) & (lam < 0.6) & ~outlier & (ctx.meas.n >= 1) & ctx.static
     if mask.sum() < 16:
         return None
     light_of = _light_of(ctx, weight)

@@ -24,17 +24,17 @@ MIN_SPIKES = 3  # a pixel needs this many spikes for its rate to count
 # z gate of each effect (its statistical significance must reach this)
 Z_GATES = {"gain_nonuniformity": 6.0, "column_pattern": 5.0, "dark_current": 6.0, "hot_pixels": 0.0,
            "shot_noise": 6.0, "reset_to_zero": 0.0, "refractory": 0.0, "flicker": 8.0, "crosstalk": 6.0,
-           "nonlinearity": 6.0}
+           "nonlinearity": 6.0, "dead_pixels": 0.0}
 # the weakest size the tools must find (synth.ENVELOPE): an effect's score is its size over this
 ENVELOPE_SIZE = {name: envelope_size(name) for name in EFFECTS}
 
 
 def _size_gate(name: str) -> float:
     """Half the envelope's weakest effect: twice its electrons for shot noise (the variance it
-    adds goes as 1 / electrons), a whole number of pixels for hot pixels (rounded down)."""
+    adds goes as 1 / electrons), a whole number of pixels for hot and dead pixels (rounded down)."""
     if name == "shot_noise":
         return 2.0 * ENVELOPE_SIZE[name]
-    if name == "hot_pixels":
+    if name in ("hot_pixels", "dead_pixels"):
         return math.floor(ENVELOPE_SIZE[name] / 2.0)
     return ENVELOPE_SIZE[name] / 2.0
 
@@ -73,6 +73,7 @@ class Context:
     Rb: np.ndarray  # [P] the baseline's responsivity
     db: np.ndarray  # [P] the baseline's dark rate, spikes per frame
     constant_fraction: float  # of pixels whose intervals never vary (noise-free reset to zero)
+    static: np.ndarray | None = None  # [P] bool, pixels whose rate does not change (all with a reference)
 
     @property
     def shape(self) -> tuple:
@@ -115,6 +116,10 @@ class RateFit:
     isi: np.ndarray | None = None  # [P] measured mean interval, frames (NaN where not fitted)
     keep: np.ndarray | None = None  # [P] pixels the final fit used
     outlier: np.ndarray | None = None  # [P] pixels left out as outliers (hot pixels, dust)
+    # the linear parameters and rate refitted at gamma = 1 (same delta and pixels), for a model
+    # that does not adopt the nonlinearity; None where not fitted
+    linear: tuple | None = None  # (a, c, d)
+    lam_linear: np.ndarray | None = None  # [P]
 
     @classmethod
     def identity(cls, delta: float, pixels: int) -> "RateFit":

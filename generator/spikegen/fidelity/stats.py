@@ -118,6 +118,31 @@ def _isi_extremes(isi, isi_pix, P):
     return isi_min, isi_max
 
 
+def interval_pixels(spikes: np.ndarray) -> np.ndarray:
+    """``int64 [n_isi_total]``: the pixel of each interval, in the order of ``PixelStats.isi_values``."""
+    pix, _ = spike_times(spikes)
+    return pix[1:][pix[1:] == pix[:-1]]
+
+
+def serial_correlation(spikes: np.ndarray) -> np.ndarray:
+    """``[P]`` lag-1 correlation of consecutive intervals of each pixel (NaN below 4 pairs or
+    where the intervals do not vary)."""
+    P = int(np.prod(spikes.shape[1:]))
+    pix, t = spike_times(spikes)
+    same2 = (pix[2:] == pix[1:-1]) & (pix[1:-1] == pix[:-2])
+    a = (t[1:-1] - t[:-2])[same2].astype(np.float64)
+    b = (t[2:] - t[1:-1])[same2].astype(np.float64)
+    g = pix[2:][same2]
+    n = np.bincount(g, minlength=P).astype(np.float64)
+    sums = [np.bincount(g, weights=v, minlength=P) for v in (a, b, a * b, a * a, b * b)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ma, mb = sums[0] / n, sums[1] / n
+        cov = sums[2] / n - ma * mb
+        va, vb = sums[3] / n - ma * ma, sums[4] / n - mb * mb
+        r = cov / np.sqrt(va * vb)
+    return np.where((n >= 4) & (va > 1e-12) & (vb > 1e-12), r, np.nan)
+
+
 def window_rate(spikes: np.ndarray) -> np.ndarray:
     """Per-pixel rate ``[P]`` of a stream (the ``rate`` of :func:`pixel_stats`, cheaper)."""
     T = spikes.shape[0]
