@@ -384,3 +384,30 @@ def test_same_seed_same_verdicts():
     spikes, radiance, intensity, _ = synth.hidden_case(["gain_nonuniformity", "hot_pixels"], seed=6, frames=600)
     a, b = (json.dumps(diagnose(spikes, radiance, intensity).as_json(), sort_keys=True) for _ in range(2))
     assert a == b
+
+
+def test_same_input_same_json_bytes_across_processes_and_blas_threads(tmp_path):
+    """`spikegen diagnose --json` run twice on the same files, in separate processes with 1 and 2
+    BLAS/OpenMP threads and different hash seeds, writes the same bytes. (Before the diagnosis
+    summed with spikegen.fidelity.exact, OpenBLAS rounded the long reductions of the rate fit
+    differently under 1 and 2 threads: this case's fitted flicker depth differed in its last bits.)"""
+    import os
+    import subprocess
+    import sys
+
+    spikes, radiance, intensity, _ = synth.hidden_case(["flicker", "reset_to_zero"], seed=30)
+    write_spikes(tmp_path / "m.npz", spikes)
+    np.save(tmp_path / "ref.npy", radiance)
+    code = "import sys; from spikegen.cli import main; sys.exit(main(sys.argv[1:]))"
+    runs = []
+    for threads, hash_seed in (("1", "0"), ("2", "1")):
+        env = {**os.environ, "OMP_NUM_THREADS": threads, "OPENBLAS_NUM_THREADS": threads, "MKL_NUM_THREADS": threads,
+               "PYTHONHASHSEED": hash_seed}
+        out = tmp_path / f"d{threads}.json"
+        runs.append((subprocess.Popen([sys.executable, "-c", code, "diagnose", str(tmp_path / "m.npz"), "--reference",
+                                       str(tmp_path / "ref.npy"), "--intensity", repr(intensity), "--json", str(out)],
+                                      env=env, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE), out))
+    for proc, _ in runs:
+        assert proc.wait(timeout=600) == 0, proc.stderr.read().decode()
+    a, b = (out.read_bytes() for _, out in runs)
+    assert json.loads(a)["detected"] and a == b

@@ -13,7 +13,7 @@ from dataclasses import replace
 import numpy as np
 
 from ..sensor import Sensor, simulate
-from . import stats
+from . import exact, stats
 from .records import GATES, MIN_SPIKES, SIM_SEED, Context, Effect, Fit, judge, rate_from_interval, unavailable
 from .synth import EFFECTS
 
@@ -119,12 +119,12 @@ def _spread_regression(rows: np.ndarray, edges, noise) -> dict | None:
         return None
     x, y, se = rows.T
     A = np.stack([x, np.ones_like(x)], axis=1) / np.maximum(se, 1e-18)[:, None]
-    M = A.T @ A
+    M = exact.gram(A)
     try:
         cov = np.linalg.inv(M)
     except np.linalg.LinAlgError:
         return None
-    theta = cov @ (A.T @ (y / np.maximum(se, 1e-18)))
+    theta = exact.matvec(cov, exact.rmatvec(A, y / np.maximum(se, 1e-18)))
     return {"gain_var": float(theta[0]), "gain_se": float(math.sqrt(cov[0, 0])), "dark_var": float(theta[1]),
             "dark_se": float(math.sqrt(cov[1, 1])), "edges": edges, "noise": noise}
 

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..sensor import interpolation_weights, neighbour_mean
-from . import stats
+from . import exact, stats
 from .records import GATES, MIN_SPIKES, Context, FlickerFit, RateFit, interval_frames
 
 GAMMA_RANGE = (0.25, 4.0)
@@ -43,7 +43,7 @@ def _bases(ctx: Context, gamma: float):
         return xg.reshape(-1), (neighbour_mean(xg) - xg).reshape(-1)
     ts = np.unique(np.linspace(0, ctx.Tf - 1, min(ctx.Tf, 48)).astype(int))
     wts = interpolation_weights(K, ctx.frames)[ts]
-    xg = (wts @ ctx.X.reshape(K, -1)).reshape(-1, H, W) ** gamma
+    xg = exact.interpolate(wts, ctx.X.reshape(K, -1)).reshape(-1, H, W) ** gamma
     return xg.mean(0).reshape(-1), (neighbour_mean(xg) - xg).mean(0).reshape(-1)
 
 
@@ -72,17 +72,17 @@ def _solve(A, isi, delta, sqrt_w, keep, want_cov=False, target=None):
     sw = sqrt_w[ok] * x[ok]  # sqrt(w) / lambda_obs
     Aw = A[ok] * sw[:, None]
     bw = sqrt_w[ok]  # lambda_obs * sw
-    M = Aw.T @ Aw
+    M = exact.gram(Aw)
     try:
-        theta = np.linalg.solve(M, Aw.T @ bw)
+        theta = np.linalg.solve(M, exact.rmatvec(Aw, bw))
     except np.linalg.LinAlgError:
         return None
     cov = None
     if want_cov:
-        res = bw - Aw @ theta
-        s2 = float(res @ res) / max(ok.sum() - A.shape[1], 1)
+        res = bw - exact.matvec(Aw, theta)
+        s2 = exact.dot(res, res) / max(ok.sum() - A.shape[1], 1)
         cov = np.linalg.inv(M) * s2
-    return theta, cov, A @ theta
+    return theta, cov, exact.matvec(A, theta)
 
 
 def _solve_censored(A, isi, delta, sqrt_w, keep, want_cov=False):
@@ -252,7 +252,7 @@ def _light_of(ctx: Context, weight: np.ndarray):
     wts = interpolation_weights(K, ctx.frames)[:ctx.Tf]
     xk = ctx.X.reshape(K, -1)
     scale = weight / np.maximum(xk.mean(0), 1e-9)
-    return lambda m: wts @ (xk[:, m] * scale[m]).sum(axis=1)
+    return lambda m: exact.matvec(wts, (xk[:, m] * scale[m]).sum(axis=1))
 
 
 def _coherence(ctx: Context, lam, mask, light_of, period_frames) -> float:

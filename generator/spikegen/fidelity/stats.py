@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..fpn import robust_sd  # noqa: F401  (one robust sigma for the project; fidelity code imports it from here)
+from . import exact
 
 MAX_SPAN = 4  # span (in ISIs) of the long-span timing variance, see PixelStats.span_var
 
@@ -204,9 +205,9 @@ def _sine_design(t, light, freq):
 
 def _sine_rss(s, t, light, freq):
     A = _sine_design(t, light, freq)
-    coef, *_ = np.linalg.lstsq(A, s, rcond=None)
-    r = s - A @ coef
-    return float(r @ r), coef
+    coef = exact.lstsq(A, s)
+    r = s - exact.matvec(A, coef)
+    return exact.dot(r, r), coef
 
 
 def fit_sine(signal: np.ndarray, light: np.ndarray, min_period: float = 6.0, max_period: float | None = None) -> SineFit:
@@ -225,8 +226,8 @@ def fit_sine(signal: np.ndarray, light: np.ndarray, min_period: float = 6.0, max
     freqs = np.arange(1.0 / max_period, 1.0 / min_period, 1.0 / (4 * T))
     rss = np.array([_sine_rss(s, t, light, f)[0] for f in freqs])
     null = np.stack([np.ones_like(t), light], axis=1)
-    coef0, *_ = np.linalg.lstsq(null, s, rcond=None)
-    rss0 = float(np.sum((s - null @ coef0) ** 2))
+    coef0 = exact.lstsq(null, s)
+    rss0 = float(np.sum((s - exact.matvec(null, coef0)) ** 2))
     gain = np.maximum(rss0 - rss, 0.0)
     # significance against the neighbouring spectrum, not a white-noise formula: regular pixel
     # trains put broad excess power at the frequencies of their rates. The typical RSS reduction
