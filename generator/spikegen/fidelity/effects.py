@@ -47,14 +47,18 @@ def sensor_with(ctx: Context, fit: Fit, found: dict, on: set, electrons: float) 
 
 def _mean_rate_effects(ctx: Context, fit: Fit) -> dict:
     """Effects on the mean rates; gain and dark spread jointly; the column estimate subtracts
-    the per-pixel gain's share."""
-    joint = joint_spread(ctx, fit)
+    the shares of the per-pixel gain and dark spread."""
+    nonlinearity = _gamma_effect(ctx, fit)
+    # the dark rate of the model at gamma = 1 unless the nonlinearity is detected; not with a
+    # noise-free reset to zero, whose censored fit trades gamma, a and d too loosely for a refit
+    linear = not nonlinearity.detected and not ctx.zero_quantised
+    joint = joint_spread(ctx, fit, linear=linear)
     gain = _gain_effect(ctx, fit, joint)
     return {"gain_nonuniformity": gain,
-            "column_pattern": _column_effect(ctx, fit, gain.evidence.get("variance", 0.0)),
-            "dark_current": _dark_effect(ctx, fit, joint), "hot_pixels": _hot_effect(ctx, fit),
-            "dead_pixels": _dead_effect(ctx, fit),
-            "nonlinearity": _gamma_effect(ctx, fit), "crosstalk": _crosstalk_effect(ctx, fit)}
+            "column_pattern": _column_effect(ctx, fit, joint),
+            "dark_current": _dark_effect(ctx, fit, joint, linear=linear),
+            "hot_pixels": _hot_effect(ctx, fit), "dead_pixels": _dead_effect(ctx, fit),
+            "nonlinearity": nonlinearity, "crosstalk": _crosstalk_effect(ctx, fit)}
 
 
 def _cov_estimate(u1, u2):
@@ -72,13 +76,17 @@ def _pattern_effect(name: str, var: float, se: float) -> Effect:
                  evidence={"variance": var, "standard_error": se})
 
 
-def joint_spread(ctx: Context, fit: Fit) -> dict | None:
+def joint_spread(ctx: Context, fit: Fit, linear: bool = False) -> dict | None:
     """Gain spread and dark-rate spread, jointly. In bins of the model's light rate ``L`` the
     residual rates ``r = (e / C - 1) lambda`` of the two halves of the fit window covary as
     ``sigma_g^2 mean(L^2) + V_d`` (a gain multiplies the light, a dark rate adds to it), so a
     chart with a range of radiances separates them; weighted least squares over the bins.
     A noise-free reset to zero leaves only long intervals: then the pooled relative covariance
-    is all gain. None without a reference or with too few pixels."""
+    is all gain. Also ``dark_shift``: the intercept (over ``L``) of the bin means of the whole
+    window's measured rate minus the adopted model's (the refit at gamma = 1 if ``linear``, as
+    effects._adopted), over ``a R_b``: the mean dark rate that model misses (the fit leaves the
+    upper tail of a spread dark map out as outliers where the light is weak). None without a
+    reference or with too few pixels."""
     st = fit.structure
     if ctx.self_ref or st.e is None:
         return None
@@ -90,25 +98,55 @@ def joint_spread(ctx: Context, fit: Fit) -> dict | None:
     if ctx.zero_quantised:  # only long intervals are usable: too narrow a range of light to separate
         var, se = _cov_estimate(st.e1[g] / C[g], st.e2[g] / C[g])
         return {"gain_var": var, "gain_se": se, "dark_var": 0.0, "dark_se": math.inf}
+    # every pixel with a rate but the hot ones: st.good cuts relative residuals, which removes the
+    # tail of a spread dark map where the light is weak only, so its variance would seem to grow
+    # with the light (and be read as gain)
+    g = np.isfinite(st.e) & np.isfinite(st.e1) & np.isfinite(st.e2) & ~st.hot
     lam = fit.rate.lam_pred
     light = np.maximum(lam - fit.rate.a * ctx.Rb * (ctx.db + fit.rate.d), 0.0)
     r1, r2 = ((e / C - 1.0) * lam for e in (st.e1, st.e2))
+    a_ad, _, _, lam_ad = _adopted(fit, {"nonlinearity": not linear})
+    rd = (st.e / C * lam - lam_ad) / np.maximum(a_ad * ctx.Rb, 1e-12)
     edges = np.quantile(light[g], np.linspace(0, 1, SPREAD_BINS + 1)[1:-1])
     which = np.searchsorted(edges, light)
-    rows, noise = [], np.zeros(SPREAD_BINS)
+    rows, means, noise = [], [], np.zeros(SPREAD_BINS)
     for b in range(SPREAD_BINS):
         m = g & (which == b)
         if m.sum() >= 10:
             cov, se = _cov_estimate(r1[m], r2[m])
+            # the bin's own sampling error too: a heavy-tailed (lognormal) dark map makes the
+            # products scatter far beyond the counting noise the null-hypothesis error knows
+            p = (r1[m] - r1[m].mean()) * (r2[m] - r2[m].mean())
+            se = max(se, float(np.std(p)) / math.sqrt(p.size))
             rows.append((float(np.mean(light[m] ** 2)), cov, se))
+            means.append((float(np.mean(light[m])), float(np.mean(rd[m])), float(np.std(rd[m])) / math.sqrt(m.sum())))
             noise[b] = float(np.var(r1[m] - r2[m])) / 4.0  # counting noise of the whole window
-    return _spread_regression(np.array(rows), edges, noise)
+    out = _spread_regression(np.array(rows), edges, noise)
+    if out is not None:
+        shift = _line_fit(np.array(means))
+        out.update(dark_shift=shift[0], dark_shift_se=shift[1])
+    return out
+
+
+def _line_fit(rows: np.ndarray) -> tuple[float, float]:
+    """``(intercept, its standard error)`` of ``y_b = s x_b + intercept`` by weighted least squares
+    over ``rows [(x, y, se)]``."""
+    x, y, se = rows.T
+    A = np.stack([np.ones_like(x), x], axis=1) / np.maximum(se, 1e-18)[:, None]
+    try:
+        cov = np.linalg.inv(exact.gram(A))
+    except np.linalg.LinAlgError:
+        return 0.0, math.inf
+    theta = exact.matvec(cov, exact.rmatvec(A, y / np.maximum(se, 1e-18)))
+    return float(theta[0]), float(math.sqrt(cov[0, 0]))
 
 
 def _row_factors(e, ok, H, W) -> np.ndarray:
     """``[P]`` each pixel's row median of ``e`` over pixels ``ok`` (median 1): a row pattern is
-    not in the catalogue, and must not be read as per-pixel gain."""
+    not in the catalogue, and must not be read as per-pixel gain (1 where no row has 4 such pixels)."""
     rows = np.array([np.median(r[m]) if m.sum() >= 4 else np.nan for r, m in zip(e.reshape(H, W), ok.reshape(H, W))])
+    if not np.isfinite(rows).any():  # no row has 4 usable pixels: no row correction
+        return np.ones(H * W)
     rows = np.where(np.isfinite(rows), rows, np.nanmedian(rows))
     return np.repeat(rows / np.median(rows), W)
 
@@ -137,10 +175,12 @@ def _gain_effect(ctx: Context, fit: Fit, joint: dict | None) -> Effect:
     return _pattern_effect("gain_nonuniformity", joint["gain_var"], joint["gain_se"])
 
 
-def _column_effect(ctx: Context, fit: Fit, gain_var: float) -> Effect:
-    """Column factors from the two halves of the fit window. A per-pixel gain of variance
-    ``gain_var`` shows in both halves' column means with variance ``gain_var / (pixels in the
-    column)``; that share is subtracted."""
+def _column_effect(ctx: Context, fit: Fit, joint: dict | None) -> Effect:
+    """Column factors from the two halves of the fit window. Per-pixel patterns that are the
+    same in both halves show in both halves' column means too: a gain of variance ``s_g^2``
+    with variance ``s_g^2 / n`` (``n`` pixels in the column), a dark rate of variance ``V_d``
+    with ``sum_p V_d / lambda_p^2 / n^2`` (it adds ``d_p / lambda_p`` to ``e``); both shares
+    (:func:`joint_spread`) are subtracted."""
     if ctx.self_ref:
         return _self_column_effect(ctx, fit)
     H, W = ctx.shape
@@ -153,7 +193,10 @@ def _column_effect(ctx: Context, fit: Fit, gain_var: float) -> Effect:
         return unavailable("column_pattern", {"sigma": None}, "too few usable columns")
     c1, c2 = cm[0][ok] / np.mean(cm[0][ok]), cm[1][ok] / np.mean(cm[1][ok])
     var, se = _cov_estimate(c1, c2)
-    var -= max(gain_var, 0.0) * float(np.mean(1.0 / n_col[ok]))
+    gain_var, dark_var = (max(joint["gain_var"], 0.0), max(joint["dark_var"], 0.0)) if joint else (0.0, 0.0)
+    inv_lam2 = np.where(g, 1.0 / np.maximum(fit.rate.lam_pred, 1e-12) ** 2, 0.0).reshape(H, W).sum(axis=0)
+    share = gain_var / n_col[ok] + dark_var * inv_lam2[ok] / n_col[ok] ** 2
+    var -= float(np.mean(share))
     return _pattern_effect("column_pattern", var, se)
 
 
@@ -176,16 +219,23 @@ def _self_column_effect(ctx: Context, fit: Fit) -> Effect:
                  "from neighbour-column ratios (no reference)")
 
 
-def _dark_effect(ctx: Context, fit: Fit, joint: dict | None) -> Effect:
+def _dark_effect(ctx: Context, fit: Fit, joint: dict | None, linear: bool = False) -> Effect:
     """The mean dark rate from the rate model; its spread over pixels from :func:`joint_spread`:
     for a lognormal map of mean ``mu`` and variance ``V``, ``spread^2 = log(1 + V / mu^2)`` and
-    the median is ``mu exp(-spread^2 / 2)``. Detected if the mean or the spread passes its gates."""
+    the median is ``mu exp(-spread^2 / 2)``. With a spread the mean is the rate model's plus
+    ``dark_shift`` (the tail the fit left out). ``d`` is that of the model the extended sensor
+    adopts (``linear``: the refit at gamma = 1 when the nonlinearity is not detected: a gamma
+    below 1 lifts the darkest pixels as a dark rate does). Detected if the mean or the spread
+    passes its gates."""
     if ctx.self_ref:
         return unavailable("dark_current", {"rate": None, "spread": None}, "needs a reference radiance")
-    d, se = fit.rate.d, fit.rate.se_d
+    d, se = _adopted(fit, {"nonlinearity": not linear})[2], fit.rate.se_d
     var, vse = (joint["dark_var"], joint["dark_se"]) if joint else (0.0, math.inf)
     spread_z = var / max(vse, 1e-30)
     spread_on = spread_z >= GATES["dark_current"][1] and d > 0 and math.sqrt(max(var, 0.0)) >= GATES["dark_current"][0]
+    if spread_on and math.isfinite(joint.get("dark_shift_se", math.inf)):
+        d = max(d + joint["dark_shift"], d)  # the tail adds: a negative shift is noise
+        se = math.hypot(se, joint["dark_shift_se"])
     spread = math.sqrt(math.log1p(max(var, 0.0) / d ** 2)) if spread_on else 0.0
     median = d * math.exp(-spread ** 2 / 2)
     eff = judge("dark_current", median, d / max(se, 1e-15), {"rate": median, "spread": spread, "mean_rate": d},
@@ -358,15 +408,18 @@ def _adopted(fit: Fit, on: dict) -> tuple:
 
 
 def _responsivity(ctx: Context, fit: Fit, found: dict, on: dict) -> np.ndarray:
-    """``[P]``: the baseline's scaled by ``a``, times column factors and the per-pixel gain if
-    detected (``e`` itself, or its gain share when a dark spread is detected too); 0 at dead pixels."""
+    """``[P]``: the baseline's scaled by ``a``, times column factors ``C`` if detected and the
+    per-pixel gain beyond the columns if detected (``e / C``, or its gain share over ``C`` when a
+    dark spread is detected too: the per-pixel gain alone does not reproduce a column pattern);
+    0 at dead pixels."""
     H, W = ctx.shape
     st = fit.structure
     base = ctx.Rb * _adopted(fit, on)[0]
-    R = base * np.tile(st.column_factors, H) if on.get("column_pattern") and not ctx.self_ref else base
+    C = np.tile(st.column_factors, H)
+    R = base * C if on.get("column_pattern") and not ctx.self_ref else base
     if on.get("gain_nonuniformity") and st.e is not None:
         gain, _ = _pixel_split(ctx, fit, found, on)
-        R = np.where(np.isfinite(gain) & ~st.hot, base * gain, R)
+        R = np.where(np.isfinite(gain) & ~st.hot, R * gain / C, R)
     if on.get("dead_pixels"):
         R = np.where(found["dead_pixels"].evidence["mask"], 0.0, R)
     return R
@@ -383,8 +436,9 @@ def _pixel_split(ctx: Context, fit: Fit, found: dict, on: dict) -> tuple[np.ndar
     st = fit.structure
     a, _, d, lam = _adopted(fit, on)
     with np.errstate(all="ignore"):
-        measured = np.clip(rate_from_interval(fit.rate.isi, fit.rate.delta), 0.0, 1.0)
-        measured = np.where(fit.rate.isi - fit.rate.delta >= 1.0, measured, np.where(fit.rate.isi <= 1.0, 1.0, np.nan))
+        isi = fit.rate.isi_eq if fit.rate.isi_eq is not None else fit.rate.isi
+        measured = np.clip(rate_from_interval(isi, fit.rate.delta), 0.0, 1.0)
+        measured = np.where(isi - fit.rate.delta >= 1.0, measured, np.where(isi <= 1.0, 1.0, np.nan))
         lam_obs = np.where(np.isfinite(st.e), st.e * fit.rate.lam_pred, measured)
     ratio = lam_obs / np.maximum(lam, 1e-12)
     dark = found["dark_current"]

@@ -12,7 +12,7 @@ import numpy as np
 
 from ..sensor import interpolation_weights, neighbour_mean
 from . import exact, stats
-from .records import GATES, MIN_SPIKES, Context, FlickerFit, RateFit, interval_frames
+from .records import GATES, MIN_SPIKES, Context, FlickerFit, RateFit, equivalent_isi, interval_frames
 
 GAMMA_RANGE = (0.25, 4.0)
 DELTA_MAX = 6.0
@@ -129,6 +129,8 @@ class _RateProblem:
     base_ok: np.ndarray  # [P] pixels with enough spikes (and not clipped at flicker peaks)
     w: np.ndarray  # [P] weights: intervals counted, at most 200
     sqrt_w: np.ndarray  # [P]
+    phi: tuple | None  # flicker factors over fbar: (fit window, first half, second half); None: no flicker
+    eq_cache: dict  # delta -> equivalent_isi of isi over the fit window
 
     @classmethod
     def build(cls, ctx: Context, flicker: FlickerFit | None, fbar: float) -> "_RateProblem":
@@ -140,18 +142,35 @@ class _RateProblem:
         w = np.minimum(meas.n - 1, 200).astype(np.float64)
         B0, B1 = _bases(ctx, 1.0)
         use_c = float(np.std(B1)) > 0.01 * float(np.mean(B0))
-        return cls(ctx, fbar, use_c, isi, base_ok, w, np.sqrt(np.maximum(w, 0.0)))
+        phi = None
+        if flicker is not None and flicker.depth > GATES["flicker"][0]:
+            t = np.arange(ctx.Tf)
+            f = (1.0 + flicker.depth * np.sin(2 * np.pi * t / flicker.period_frames + flicker.phase_rad)) / fbar
+            half = ctx.Tf // 2
+            phi = (f, f[:half], f[half:])
+        return cls(ctx, fbar, use_c, isi, base_ok, w, np.sqrt(np.maximum(w, 0.0)), phi, {})
+
+    def isi_at(self, delta) -> np.ndarray:
+        """``[P]`` the measured mean intervals as the flicker-free intervals of readout ``delta``
+        (records.equivalent_isi; the intervals themselves without flicker)."""
+        if self.phi is None:
+            return self.isi
+        key = float(delta)
+        if key not in self.eq_cache:
+            self.eq_cache[key] = np.where(self.base_ok, equivalent_isi(self.isi, key, self.phi[0]), 0.0)
+        return self.eq_cache[key]
 
     def fit_at(self, delta, gamma, keep, want_cov=False):
         """``(objective, (theta, cov, lam_pred [P]) or None)`` at fixed ``(delta, gamma)``."""
         A = _design(self.ctx, self.fbar, gamma, self.use_c)
+        isi = self.isi_at(delta)
         if self.ctx.zero_quantised:
-            sol, obj = _solve_censored(A, self.isi, delta, self.sqrt_w, keep, want_cov)
+            sol, obj = _solve_censored(A, isi, delta, self.sqrt_w, keep, want_cov)
             return obj, sol
-        sol = _solve(A, self.isi, delta, self.sqrt_w, keep, want_cov)
+        sol = _solve(A, isi, delta, self.sqrt_w, keep, want_cov)
         if sol is None:
             return math.inf, None
-        return _objective(self.isi, sol[2], delta, self.w, keep), sol
+        return _objective(isi, sol[2], delta, self.w, keep), sol
 
     def best_gamma(self, delta, keep, iters=22) -> float:
         g = stats.golden_min(lambda gm: self.fit_at(delta, math.exp(gm), keep)[0], *np.log(GAMMA_RANGE), iters=iters)
@@ -176,18 +195,22 @@ class _RateProblem:
 
     def outliers(self, delta, lam_pred, keep) -> np.ndarray:
         """``[P]`` pixels whose relative interval error is beyond 6 robust SDs (and 1 %)."""
+        isi = self.isi_at(delta)
         if self.ctx.zero_quantised:
-            err = self.isi - delta + 0.5 - np.ceil(1.0 / np.clip(lam_pred, 1e-12, 1.0) - 1e-9)
+            err = isi - delta + 0.5 - np.ceil(1.0 / np.clip(lam_pred, 1e-12, 1.0) - 1e-9)
         else:
-            err = self.isi - interval_frames(lam_pred, delta)
-        rel = np.where(self.base_ok, err / np.where(self.base_ok, self.isi, 1.0), 0.0)
+            err = isi - interval_frames(lam_pred, delta)
+        rel = np.where(self.base_ok, err / np.where(self.base_ok, isi, 1.0), 0.0)
         sd = stats.robust_sd(rel[keep])
         return self.base_ok & (np.abs(rel) > max(6 * sd, 0.01))
 
-    def result(self, delta, gamma, obj, solution, keep, outlier) -> RateFit:
+    def result(self, delta, gamma, obj, solution, fit_keep, keep, outlier) -> RateFit:
+        """The record of ``solution`` (fitted on pixels ``fit_keep`` with objective ``obj``);
+        ``keep`` and ``outlier`` after its outlier update."""
         theta, cov, lam_pred = solution
         a = float(theta[0])
-        se_gamma = _gamma_se(lambda gm: self.fit_at(delta, gm, keep)[0], gamma, obj, int(keep.sum()))
+        # the curvature around obj on the same pixels as obj (the updated keep has another objective)
+        se_gamma = _gamma_se(lambda gm: self.fit_at(delta, gm, fit_keep)[0], gamma, obj, int(fit_keep.sum()))
         _, linear = self.fit_at(delta, 1.0, keep)
         if linear is None:
             linear = solution
@@ -196,7 +219,8 @@ class _RateProblem:
                        delta=float(delta), fbar=self.fbar, use_c=self.use_c,
                        se_c=math.sqrt(float(cov[1, 1]) / a ** 2) if self.use_c else math.inf,
                        se_d=math.sqrt(float(cov[-1, -1])) / abs(a), se_gamma=se_gamma, objective=obj,
-                       lam_pred=lam_pred, isi=np.where(self.base_ok, self.isi, np.nan), keep=keep, outlier=outlier,
+                       lam_pred=lam_pred, isi=np.where(self.base_ok, self.isi, np.nan),
+                       isi_eq=np.where(self.base_ok, self.isi_at(delta), np.nan), phi=self.phi, keep=keep, outlier=outlier,
                        linear=(float(t1[0]), float(t1[1] / t1[0]) if self.use_c else 0.0, float(t1[-1] / t1[0])),
                        lam_linear=linear[2])
 
@@ -211,9 +235,10 @@ def fit_rate_model(ctx: Context, flicker: FlickerFit | None, fbar: float, outlie
         delta = prob.search_delta(keep, rnd, d0)
         gamma = prob.best_gamma(delta, keep, iters=30)
         obj, solution = prob.fit_at(delta, gamma, keep, want_cov=True)
+        fit_keep = keep
         outlier = prob.outliers(delta, solution[2], keep)
         keep, d0 = prob.base_ok & ~outlier, delta
-    return prob.result(delta, gamma, obj, solution, keep, outlier)
+    return prob.result(delta, gamma, obj, solution, fit_keep, keep, outlier)
 
 
 # ---------------------------------------------------------------------- flicker

@@ -50,6 +50,24 @@ def interval_frames(lam: np.ndarray, delta: float) -> np.ndarray:
     return delta + 1.0 / np.clip(lam, 1e-12, 1.0)
 
 
+def equivalent_isi(isi_frames: np.ndarray, delta: float, phi: np.ndarray | None) -> np.ndarray:
+    """The mean interval ``interval_frames(lambda, delta)`` of the steady rate ``lambda`` whose
+    flickering version ``lambda phi_t`` gives the mean intervals ``isi_frames`` (any shape):
+    under flicker the mean rate is the mean over the frames of ``1 / interval_frames(lambda phi_t,
+    delta)``, which is below the rate at the mean light once ``delta > 0`` (the interval law is
+    not linear in 1 / lambda). ``phi [T]``: the flicker factor of each frame over the mean the
+    rate model uses (None: no flicker, ``isi_frames`` itself). Inverted by interpolation on a
+    geometric grid of 800 rates up to the last that is not saturated at every frame."""
+    if phi is None:
+        return isi_frames
+    phi = np.asarray(phi, dtype=np.float64)
+    grid = np.geomspace(1e-6, 1.0 / max(float(phi.min()), 1e-6), 800)
+    mean_rate = (1.0 / interval_frames(grid[:, None] * phi[None, :], delta)).mean(axis=1)
+    with np.errstate(all="ignore"):
+        lam = np.interp(1.0 / np.asarray(isi_frames, dtype=np.float64), mean_rate, grid)
+        return np.where(np.isfinite(isi_frames) & (isi_frames > 0), interval_frames(lam, delta), isi_frames)
+
+
 def rate_from_interval(isi_frames: np.ndarray, delta: float) -> np.ndarray:
     """The formula inverted where ``ISI - delta >= 1``: ``lambda = 1 / (ISI - delta)`` spikes
     per frame (inf or negative where ``ISI <= delta``, NaN where ``ISI`` is NaN)."""
@@ -114,6 +132,12 @@ class RateFit:
     objective: float = math.inf  # weighted mean squared relative interval error
     lam_pred: np.ndarray | None = None  # [P] model rate, spikes per frame
     isi: np.ndarray | None = None  # [P] measured mean interval, frames (NaN where not fitted)
+    # [P] the interval the fitted readout would give each pixel at the mean light of the fit window
+    # (equivalent_isi: isi itself without flicker); the model's lam_pred predicts this one
+    isi_eq: np.ndarray | None = None
+    # flicker factors of the frames over the model's mean: (fit window, its first half, its second
+    # half), each [frames]; None without a fitted flicker
+    phi: tuple | None = None
     keep: np.ndarray | None = None  # [P] pixels the final fit used
     outlier: np.ndarray | None = None  # [P] pixels left out as outliers (hot pixels, dust)
     # the linear parameters and rate refitted at gamma = 1 (same delta and pixels), for a model
