@@ -14,11 +14,10 @@ import numpy as np
 
 from ..sensor import Sensor, simulate
 from . import exact, stats
-from .records import GATES, MIN_SPIKES, SIM_SEED, Context, Effect, Fit, judge, rate_from_interval, unavailable
+from .records import GATES, MIN_COHERENCE, MIN_SPIKES, SIM_SEED, Context, Effect, Fit, judge, rate_from_interval, unavailable
 from .synth import EFFECTS
 
 MODEL_VARIANCE_SHARE = 0.1  # shot noise must add this much to the model's own interval variance
-MIN_COHERENCE = 0.9  # flicker: agreement of the sinusoid across four pixel groups (1 = identical)
 SPREAD_BINS = 8  # bins of the light rate in which gain and dark spread are separated
 JITTER_NOTE = ("interval variance 1 / (N_e lambda^2): a threshold jitter of relative SD 1 / sqrt(N_e) "
                "(threshold_jitter_equivalent) gives the same timing; reported as shot noise")

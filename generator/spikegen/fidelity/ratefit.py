@@ -12,7 +12,7 @@ import numpy as np
 
 from ..sensor import interpolation_weights, neighbour_mean
 from . import exact, stats
-from .records import GATES, MIN_SPIKES, Context, FlickerFit, RateFit, equivalent_isi, interval_frames
+from .records import GATES, MIN_COHERENCE, MIN_SPIKES, Context, FlickerFit, RateFit, equivalent_isi, interval_frames
 
 GAMMA_RANGE = (0.25, 4.0)
 DELTA_MAX = 6.0
@@ -142,8 +142,10 @@ class _RateProblem:
         w = np.minimum(meas.n - 1, 200).astype(np.float64)
         B0, B1 = _bases(ctx, 1.0)
         use_c = float(np.std(B1)) > 0.01 * float(np.mean(B0))
-        phi = None
-        if flicker is not None and flicker.depth > GATES["flicker"][0]:
+        phi = None  # a flicker shared by all pixels; never with constant intervals (a noise-free
+        # reset to zero, whose censored fit needs the whole-frame intervals as measured)
+        if (flicker is not None and flicker.depth > GATES["flicker"][0] and flicker.coherence >= MIN_COHERENCE
+                and not ctx.zero_quantised):
             t = np.arange(ctx.Tf)
             f = (1.0 + flicker.depth * np.sin(2 * np.pi * t / flicker.period_frames + flicker.phase_rad)) / fbar
             half = ctx.Tf // 2

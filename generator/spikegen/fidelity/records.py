@@ -20,6 +20,7 @@ from .synth import EFFECTS, envelope_size
 
 SIM_SEED = 20240617  # seed of the diagnosis' own simulations (the measured stream's is unknown)
 MIN_SPIKES = 3  # a pixel needs this many spikes for its rate to count
+MIN_COHERENCE = 0.9  # flicker: agreement of the sinusoid across four pixel groups (1 = identical)
 
 # z gate of each effect (its statistical significance must reach this)
 Z_GATES = {"gain_nonuniformity": 6.0, "column_pattern": 5.0, "dark_current": 6.0, "hot_pixels": 0.0,
