@@ -430,7 +430,7 @@ def test_exact_linear_algebra_agrees_with_blas():
 
 def test_equivalent_interval_under_flicker():
     """The mean interval of a flickering rate, mapped back to the steady rate's interval."""
-    from spikegen.fidelity.records import equivalent_isi, interval_frames
+    from spikegen.fidelity.records import equivalent_isi, flicker_mean_isi, flicker_rate_table, interval_frames
 
     t = np.arange(800)
     phi = 1.0 + 0.4 * np.sin(2 * np.pi * t / 97.0)
@@ -438,7 +438,11 @@ def test_equivalent_interval_under_flicker():
     lam = np.array([0.01, 0.05, 0.2, 0.5])
     for delta in (0.0, 0.5, 2.0):
         measured = 1.0 / (1.0 / interval_frames(lam[:, None] * phi[None, :], delta)).mean(axis=1)
-        assert np.allclose(equivalent_isi(measured, delta, phi), interval_frames(lam, delta), rtol=1e-4)
+        table = flicker_rate_table(delta, phi)
+        assert np.allclose(flicker_mean_isi(lam, delta, table), measured, rtol=1e-4)
+        assert np.allclose(equivalent_isi(measured, delta, table), interval_frames(lam, delta), rtol=1e-4)
         if delta > 0:  # the flickering mean interval is longer than the steady one
             assert np.all(measured[1:] > interval_frames(lam[1:], delta) * 1.001)
+    saturated = np.array([delta + 0.5])  # shorter than any mean interval the readout can give
+    assert equivalent_isi(saturated, delta, table)[0] == saturated[0]
     assert equivalent_isi(measured, 0.5, None) is measured

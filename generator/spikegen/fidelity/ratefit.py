@@ -12,7 +12,8 @@ import numpy as np
 
 from ..sensor import interpolation_weights, neighbour_mean
 from . import exact, stats
-from .records import GATES, MIN_COHERENCE, MIN_SPIKES, Context, FlickerFit, RateFit, equivalent_isi, interval_frames
+from .records import (GATES, MIN_COHERENCE, MIN_SPIKES, Context, FlickerFit, RateFit, equivalent_isi, flicker_mean_isi,
+                      flicker_rate_table, interval_frames)
 
 GAMMA_RANGE = (0.25, 4.0)
 DELTA_MAX = 6.0
@@ -104,8 +105,9 @@ def _solve_censored(A, isi, delta, sqrt_w, keep, want_cov=False):
     return sol, float(np.sum(w * rel * rel) / np.sum(w))
 
 
-def _objective(isi, lam_pred, delta, w, keep):
-    rel = (isi[keep] - interval_frames(lam_pred[keep], delta)) / isi[keep]
+def _objective(isi, predicted, w, keep):
+    """Weighted mean squared relative error of the predicted mean intervals."""
+    rel = (isi[keep] - predicted[keep]) / isi[keep]
     return float(np.sum(w[keep] * rel * rel) / np.sum(w[keep]))
 
 
@@ -130,7 +132,7 @@ class _RateProblem:
     w: np.ndarray  # [P] weights: intervals counted, at most 200
     sqrt_w: np.ndarray  # [P]
     phi: tuple | None  # flicker factors over fbar: (fit window, first half, second half); None: no flicker
-    eq_cache: dict  # delta -> equivalent_isi of isi over the fit window
+    tables: dict  # delta -> flicker_rate_table of the fit window
 
     @classmethod
     def build(cls, ctx: Context, flicker: FlickerFit | None, fbar: float) -> "_RateProblem":
@@ -152,15 +154,25 @@ class _RateProblem:
             phi = (f, f[:half], f[half:])
         return cls(ctx, fbar, use_c, isi, base_ok, w, np.sqrt(np.maximum(w, 0.0)), phi, {})
 
+    def table(self, delta):
+        """records.flicker_rate_table of readout ``delta`` over the fit window (None without flicker)."""
+        if self.phi is None:
+            return None
+        key = float(delta)
+        if key not in self.tables:
+            self.tables[key] = flicker_rate_table(key, self.phi[0])
+        return self.tables[key]
+
     def isi_at(self, delta) -> np.ndarray:
         """``[P]`` the measured mean intervals as the flicker-free intervals of readout ``delta``
-        (records.equivalent_isi; the intervals themselves without flicker)."""
-        if self.phi is None:
-            return self.isi
-        key = float(delta)
-        if key not in self.eq_cache:
-            self.eq_cache[key] = np.where(self.base_ok, equivalent_isi(self.isi, key, self.phi[0]), 0.0)
-        return self.eq_cache[key]
+        (records.equivalent_isi; the intervals themselves without flicker): the target of the
+        linear step. The objective compares the measured intervals themselves with the model's
+        flicker-averaged ones (:meth:`predicted`), so that it means the same at every delta."""
+        return np.where(self.base_ok, equivalent_isi(self.isi, delta, self.table(delta)), 0.0)
+
+    def predicted(self, lam_pred, delta) -> np.ndarray:
+        """``[P]`` the model's mean interval over the fit window (flicker included)."""
+        return flicker_mean_isi(lam_pred, delta, self.table(delta))
 
     def fit_at(self, delta, gamma, keep, want_cov=False):
         """``(objective, (theta, cov, lam_pred [P]) or None)`` at fixed ``(delta, gamma)``."""
@@ -172,7 +184,7 @@ class _RateProblem:
         sol = _solve(A, isi, delta, self.sqrt_w, keep, want_cov)
         if sol is None:
             return math.inf, None
-        return _objective(isi, sol[2], delta, self.w, keep), sol
+        return _objective(self.isi, self.predicted(sol[2], delta), self.w, keep), sol
 
     def best_gamma(self, delta, keep, iters=22) -> float:
         g = stats.golden_min(lambda gm: self.fit_at(delta, math.exp(gm), keep)[0], *np.log(GAMMA_RANGE), iters=iters)
@@ -197,11 +209,11 @@ class _RateProblem:
 
     def outliers(self, delta, lam_pred, keep) -> np.ndarray:
         """``[P]`` pixels whose relative interval error is beyond 6 robust SDs (and 1 %)."""
-        isi = self.isi_at(delta)
+        isi = self.isi
         if self.ctx.zero_quantised:
             err = isi - delta + 0.5 - np.ceil(1.0 / np.clip(lam_pred, 1e-12, 1.0) - 1e-9)
         else:
-            err = isi - interval_frames(lam_pred, delta)
+            err = isi - self.predicted(lam_pred, delta)
         rel = np.where(self.base_ok, err / np.where(self.base_ok, isi, 1.0), 0.0)
         sd = stats.robust_sd(rel[keep])
         return self.base_ok & (np.abs(rel) > max(6 * sd, 0.01))

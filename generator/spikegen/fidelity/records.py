@@ -51,22 +51,39 @@ def interval_frames(lam: np.ndarray, delta: float) -> np.ndarray:
     return delta + 1.0 / np.clip(lam, 1e-12, 1.0)
 
 
-def equivalent_isi(isi_frames: np.ndarray, delta: float, phi: np.ndarray | None) -> np.ndarray:
-    """The mean interval ``interval_frames(lambda, delta)`` of the steady rate ``lambda`` whose
-    flickering version ``lambda phi_t`` gives the mean intervals ``isi_frames`` (any shape):
-    under flicker the mean rate is the mean over the frames of ``1 / interval_frames(lambda phi_t,
-    delta)``, which is below the rate at the mean light once ``delta > 0`` (the interval law is
-    not linear in 1 / lambda). ``phi [T]``: the flicker factor of each frame over the mean the
-    rate model uses (None: no flicker, ``isi_frames`` itself). Inverted by interpolation on a
-    geometric grid of 800 rates up to the last that is not saturated at every frame."""
-    if phi is None:
-        return isi_frames
+def flicker_rate_table(delta: float, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(lambda [800], mean rate [800])``: the mean over the frames of ``1 / interval_frames(lambda
+    phi_t, delta)`` on a geometric grid of steady rates ``lambda`` up to the last that is not
+    saturated at every frame (beyond it the mean rate stays at its last value). ``phi [T]``: the
+    flicker factor of each frame over the mean the rate model uses. Under flicker the mean rate is
+    below the rate at the mean light once ``delta > 0`` (the interval law is not linear in
+    ``1 / lambda``)."""
     phi = np.asarray(phi, dtype=np.float64)
     grid = np.geomspace(1e-6, 1.0 / max(float(phi.min()), 1e-6), 800)
-    mean_rate = (1.0 / interval_frames(grid[:, None] * phi[None, :], delta)).mean(axis=1)
+    return grid, (1.0 / interval_frames(grid[:, None] * phi[None, :], delta)).mean(axis=1)
+
+
+def flicker_mean_isi(lam: np.ndarray, delta: float, table) -> np.ndarray:
+    """The mean interval, frames, of steady rates ``lam`` under the flicker of ``table``
+    (:func:`flicker_rate_table`; None: ``interval_frames(lam, delta)``)."""
+    if table is None:
+        return interval_frames(lam, delta)
+    return 1.0 / np.interp(lam, *table)
+
+
+def equivalent_isi(isi_frames: np.ndarray, delta: float, table) -> np.ndarray:
+    """The inverse of :func:`flicker_mean_isi`: the interval ``interval_frames(lambda, delta)`` of
+    the steady rate ``lambda`` whose flickering version gives the mean intervals ``isi_frames``
+    (any shape; where they are shorter than the saturated mean interval, or not positive, they are
+    returned as they are). ``table``: :func:`flicker_rate_table` (None: ``isi_frames`` itself)."""
+    if table is None:
+        return isi_frames
+    grid, mean_rate = table
     with np.errstate(all="ignore"):
-        lam = np.interp(1.0 / np.asarray(isi_frames, dtype=np.float64), mean_rate, grid)
-        return np.where(np.isfinite(isi_frames) & (isi_frames > 0), interval_frames(lam, delta), isi_frames)
+        rate = 1.0 / np.asarray(isi_frames, dtype=np.float64)
+        lam = np.interp(rate, mean_rate, grid)
+        ok = np.isfinite(rate) & (rate > 0) & (rate < mean_rate[-1])
+        return np.where(ok, interval_frames(lam, delta), isi_frames)
 
 
 def rate_from_interval(isi_frames: np.ndarray, delta: float) -> np.ndarray:

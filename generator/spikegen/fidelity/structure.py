@@ -11,7 +11,7 @@ import warnings
 import numpy as np
 
 from . import stats
-from .records import MIN_SPIKES, Context, PixelStructure, RateFit, equivalent_isi, rate_from_interval
+from .records import MIN_SPIKES, Context, PixelStructure, RateFit, equivalent_isi, flicker_rate_table, rate_from_interval
 
 QUANTISED_MIN_ISI = 8.0  # noise-free reset-to-zero: intervals shorter than this say too little
 
@@ -30,8 +30,9 @@ def pixel_structure(ctx: Context, rate: RateFit) -> PixelStructure:
         valid &= isi >= QUANTISED_MIN_ISI
     e = np.where(valid, lam_obs / lam_pred, np.nan)
     phis = rate.phi[1:] if rate.phi is not None else (None, None)
-    e1, e2 = (np.where(valid, rate_from_interval(equivalent_isi(1.0 / np.maximum(h, 1e-12), delta, phi), delta)
-                       / lam_pred, np.nan) for h, phi in zip(ctx.halves, phis))
+    tables = [None if phi is None else flicker_rate_table(delta, phi) for phi in phis]
+    e1, e2 = (np.where(valid, rate_from_interval(equivalent_isi(1.0 / np.maximum(h, 1e-12), delta, table), delta)
+                       / lam_pred, np.nan) for h, table in zip(ctx.halves, tables))
     col = _column_factors(e, valid & ~rate.outlier, H, W)
     C = np.tile(col, H)
     resid = e / C - 1.0
