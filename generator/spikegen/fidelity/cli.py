@@ -147,3 +147,8 @@ def _print_summary(result) -> None:
     click.echo("held-out discrepancy (baseline -> extended):")
     for k, v in result.gain().items():
         click.echo(f"  {k}: {v['baseline']:.4g} -> {v['extended']:.4g}")
+    held = result.heldout
+    if held:
+        click.echo(f"held-out score, nats per pixel (higher is better): ideal {held['ideal']:.4g} -> "
+                   f"fitted {held['fitted']:.4g} ({held['pixels']} pixels judged)")
+    click.echo("unexplained: " + (", ".join(u["statistic"] for u in result.unexplained) or "nothing"))

@@ -28,10 +28,17 @@ frames and judges it on the rest:
 6. Reset-to-zero: the half-frame offset, and pixels whose intervals never vary.
 
 Every effect gets ``score`` = its estimated size over the weakest size the tools must find
-(synth.ENVELOPE), and ``z`` (its statistical significance); detected when both pass. The
-extended sensor is the baseline plus the detected effects with the fitted maps; "baseline",
+(synth.ENVELOPE), and ``z`` (its statistical significance); it passes its gates when both
+pass. Gain and dark-rate spread are separated jointly (effects.joint_spread: multiplicative
+against additive over a range of light). Then the held-out choice (:mod:`.heldout`): the
+effects that passed their gates are removed one by one while removing them does not lower a
+proper score of the held-out frames (Gaussian log-likelihood of intervals and window counts
+under each model's simulation) by more than a penalty; only the kept ones are reported
+(detected). The extended sensor is the baseline plus the kept effects with the fitted maps;
+"heldout" is the score of the baseline and of the extended sensor; "unexplained" lists the
+held-out statistics the extended sensor does not reproduce (:mod:`.unexplained`); "baseline",
 "extended" and "gain" are the named discrepancy measures (stats.MEASURES) of each model on
-the held-out frames.
+the held-out frames. With ``self`` only static pixels (heldout.static_pixels) are judged.
 
 The steps are separate modules, each returning frozen records (:mod:`.records`):
 :mod:`.ratefit` (flicker, the rate model), :mod:`.structure` (per-pixel structure),
@@ -40,17 +47,19 @@ The steps are separate modules, each returning frozen records (:mod:`.records`):
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 
 from ..errors import InputError
 from ..sensor import Sensor, simulate
-from . import stats
-from .effects import effects_and_sensor
+from . import heldout, stats
+from .effects import gated_effects, sensor_with
 from .ratefit import constant_interval_fraction, fit_flicker, fit_rate_model, self_refractory
-from .records import ENVELOPE_SIZE, GATES, SIM_SEED, Context, Effect, Fit, RateFit, as_number
+from .records import ENVELOPE_SIZE, GATES, SIM_SEED, Context, Effect, Fit, RateFit, as_number  # noqa: F401
 from .structure import pixel_structure
+from .synth import EFFECTS
+from .unexplained import unexplained
 
 __all__ = ["FIT_FRACTION", "SIM_SEED", "GATES", "ENVELOPE_SIZE", "Diagnosis", "Effect", "diagnose"]
 
@@ -65,6 +74,9 @@ class Diagnosis:
     extended_measures: dict
     fit: Fit | None = None  # fitted model and maps, for reports
     info: dict = field(default_factory=dict)
+    heldout: dict = field(default_factory=dict)  # the held-out score of the ideal and fitted models
+    unexplained: list = field(default_factory=list)  # statistics the fitted model does not reproduce
+    static: np.ndarray | None = None  # [H, W] bool, pixels judged (the static ones with 'self')
 
     @property
     def detected(self) -> list:
@@ -87,7 +99,8 @@ class Diagnosis:
                 "baseline": {k: as_number(v) for k, v in self.baseline_measures.items()},
                 "extended": {k: as_number(v) for k, v in self.extended_measures.items()},
                 "gain": self.gain(), "measures": stats.MEASURES, "info": self.info,
-                "extended_sensor": self.extended.parameters()}
+                "extended_sensor": self.extended.parameters(), "heldout": self.heldout,
+                "unexplained": self.unexplained}
 
 
 # ---------------------------------------------------------------------- entry point
@@ -103,14 +116,66 @@ def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | 
     ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)))
     step("mean-rate model")
     fit = _fit_all(ctx)
-    step("noise-free model simulation")
-    effects, extended = effects_and_sensor(ctx, fit)
+    step("effects, chosen by held-out score")
+    effects, extended, held = _choose(ctx, fit)
     step("held-out comparison")
     bm, em = (_held_out(ctx, sensor) for sensor in (baseline, extended))
+    n_static = int(ctx.static.sum())
     info = {"frames": T, "fit_frames": ctx.Tf, "held_out_frames": T - ctx.Tf, "height": H, "width": W,
             "intensity": ctx.intensity, "reference": "self" if ctx.self_ref else f"{ctx.X.shape[0]} sub-frame(s)",
-            "baseline_sensor": baseline.name}
-    return Diagnosis(effects, extended, bm, em, fit=fit, info=info)
+            "baseline_sensor": baseline.name, "static_pixels": n_static, "moving_pixels": H * W - n_static}
+    return Diagnosis(effects, extended, bm, em, fit=fit, info=info, heldout=held["doc"],
+                     unexplained=held["unexplained"], static=ctx.static.reshape(H, W))
+
+
+def _choose(ctx: Context, fit: Fit) -> tuple[list, Sensor, dict]:
+    """The gated effects, then backward elimination by held-out score (heldout.select); returns
+    the verdicts (dropped effects undetected, with a note), the extended sensor, and
+    ``{"doc": the JSON "heldout" entry, "unexplained": entries}``."""
+    found, electrons = gated_effects(ctx, fit)
+    cache = {}
+
+    def evaluate(on):
+        key = frozenset(on)
+        if key not in cache:
+            cache[key] = _held_score(ctx, sensor_with(ctx, fit, found, set(on), electrons))
+        return cache[key][0]
+
+    gated = [n for n in EFFECTS if found[n].detected]
+    kept, evidence = heldout.select(gated, evaluate, {n: heldout.penalty(n, found[n].parameters) for n in gated})
+    effects = [_with_evidence(found[n], n in kept, evidence.get(n)) for n in EFFECTS]
+    extended = sensor_with(ctx, fit, found, set(kept), electrons)
+    ideal, _ = _held_score(ctx, ctx.baseline)
+    fitted = evaluate(set(kept))
+    sim = cache[frozenset(kept)][1]
+    doc = {"measure": heldout.MEASURE, "ideal": as_number(ideal.mean), "fitted": as_number(fitted.mean),
+           "higher_is_better": True, "window_frames": heldout.window_lengths(ctx.frames - ctx.Tf),
+           "pixels": int(ctx.static.sum()),
+           "effects": {n: {"gain_nats": as_number(g), "standard_error": as_number(se), "kept": n in kept}
+                       for n, (g, se) in evidence.items()}}
+    found_unexplained = unexplained(ctx.spikes[ctx.Tf:], sim, ctx.static, ctx.X.shape[0] == 1)
+    return effects, extended, {"doc": doc, "unexplained": found_unexplained}
+
+
+def _with_evidence(effect: Effect, kept: bool, gain) -> Effect:
+    """``effect`` with its held-out gain ``(nats, standard error)`` in the evidence; one the
+    gates passed but the held-out choice dropped is marked undetected, with a note."""
+    if gain is None:
+        return effect
+    nats, se = gain
+    effect = replace(effect, evidence={**effect.evidence, "heldout_gain_nats": nats, "heldout_se": se})
+    if kept:
+        return effect
+    return replace(effect, detected=False,
+                   note=f"passed its gates but does not improve the held-out score ({nats:+.3g} nats, SE {se:.3g})")
+
+
+def _held_score(ctx: Context, sensor: Sensor):
+    """``(HeldOutScore, simulation [T, H, W])`` of ``sensor``."""
+    sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED)
+    sim_stats = stats.pixel_stats(sim)
+    held = slice(ctx.Tf, ctx.frames)
+    return heldout.score(ctx.spikes[held], sim, sim_stats, ctx.static, ctx.X.shape[0] == 1), sim
 
 
 def _check_stream(spikes, intensity) -> np.ndarray:
@@ -140,8 +205,9 @@ def _context(spikes, radiance, intensity: float, baseline: Sensor, Tf: int) -> C
         if X.ndim != 3 or X.shape[1:] != (H, W):
             raise InputError(f"reference radiance is {X.shape[-1]}x{X.shape[-2]}, the stream is {W}x{H}")
     Rb, db = baseline.maps(H, W)
+    static = heldout.static_pixels(spikes) if self_ref else np.ones(H * W, dtype=bool)
     return Context(spikes, X, intensity, baseline, Tf, meas, halves, self_ref, Rb.reshape(-1), db.reshape(-1),
-                   constant_interval_fraction(meas))
+                   constant_interval_fraction(meas), static)
 
 
 def _self_radiance(rate, intensity, baseline, H, W):

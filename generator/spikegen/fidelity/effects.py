@@ -13,17 +13,20 @@ from dataclasses import replace
 import numpy as np
 
 from ..sensor import Sensor, simulate
-from . import stats
-from .records import GATES, MIN_SPIKES, SIM_SEED, Context, Effect, Fit, judge, rate_from_interval, unavailable
+from . import exact, stats
+from .records import GATES, MIN_COHERENCE, MIN_SPIKES, SIM_SEED, Context, Effect, Fit, judge, rate_from_interval, unavailable
 from .synth import EFFECTS
 
 MODEL_VARIANCE_SHARE = 0.1  # shot noise must add this much to the model's own interval variance
-MIN_COHERENCE = 0.9  # flicker: agreement of the sinusoid across four pixel groups (1 = identical)
+SPREAD_BINS = 8  # bins of the light rate in which gain and dark spread are separated
+JITTER_NOTE = ("interval variance 1 / (N_e lambda^2): a threshold jitter of relative SD 1 / sqrt(N_e) "
+               "(threshold_jitter_equivalent) gives the same timing; reported as shot noise")
+DEAD_MIN_SPIKES = 5.0  # a pixel is tested for being dead where the model expects this many spikes
 
 
-def effects_and_sensor(ctx: Context, fit: Fit) -> tuple[list, Sensor]:
-    """Every effect's verdict (in synth.EFFECTS order) and the extended sensor: the baseline
-    plus the detected effects with the fitted maps and shot noise."""
+def gated_effects(ctx: Context, fit: Fit) -> tuple[dict, float]:
+    """Every effect's verdict by its own gates (``{name: Effect}``, synth.EFFECTS order) and the
+    shot noise electrons (0: none). The held-out choice (diagnose.py) may still drop effects."""
     found = _mean_rate_effects(ctx, fit)  # the order of `found` is that of the sensor's notes["effects"]
     found["flicker"] = _flicker_effect(fit)
     found["refractory"], found["reset_to_zero"] = _readout_effects(ctx, fit)
@@ -32,16 +35,29 @@ def effects_and_sensor(ctx: Context, fit: Fit) -> tuple[list, Sensor]:
     deterministic = build_sensor(ctx, fit, found, electrons=0.0)
     shot = found["shot_noise"] = _shot_effect(ctx, fit, deterministic)
     electrons = (shot.parameters.get("electrons") or 0.0) if shot.detected else 0.0
-    return [found[n] for n in EFFECTS], build_sensor(ctx, fit, found, electrons=electrons)
+    return {n: found[n] for n in EFFECTS}, electrons
+
+
+def sensor_with(ctx: Context, fit: Fit, found: dict, on: set, electrons: float) -> Sensor:
+    """The extended sensor with only the effects ``on`` of ``found`` switched on."""
+    chosen = {n: replace(e, detected=e.detected and n in on) for n, e in found.items()}
+    return build_sensor(ctx, fit, chosen, electrons=electrons if "shot_noise" in on else 0.0)
 
 
 def _mean_rate_effects(ctx: Context, fit: Fit) -> dict:
-    """Effects on the mean rates; the column estimate subtracts the per-pixel gain's share."""
-    gain = _gain_effect(ctx, fit)
+    """Effects on the mean rates; gain and dark spread jointly; the column estimate subtracts
+    the shares of the per-pixel gain and dark spread."""
+    nonlinearity = _gamma_effect(ctx, fit)
+    # the dark rate of the model at gamma = 1 unless the nonlinearity is detected; not with a
+    # noise-free reset to zero, whose censored fit trades gamma, a and d too loosely for a refit
+    linear = not nonlinearity.detected and not ctx.zero_quantised
+    joint = joint_spread(ctx, fit, linear=linear)
+    gain = _gain_effect(ctx, fit, joint)
     return {"gain_nonuniformity": gain,
-            "column_pattern": _column_effect(ctx, fit, gain.evidence.get("variance", 0.0)),
-            "dark_current": _dark_effect(ctx, fit), "hot_pixels": _hot_effect(fit),
-            "nonlinearity": _gamma_effect(ctx, fit), "crosstalk": _crosstalk_effect(ctx, fit)}
+            "column_pattern": _column_effect(ctx, fit, joint),
+            "dark_current": _dark_effect(ctx, fit, joint, linear=linear),
+            "hot_pixels": _hot_effect(ctx, fit), "dead_pixels": _dead_effect(ctx, fit),
+            "nonlinearity": nonlinearity, "crosstalk": _crosstalk_effect(ctx, fit)}
 
 
 def _cov_estimate(u1, u2):
@@ -59,23 +75,111 @@ def _pattern_effect(name: str, var: float, se: float) -> Effect:
                  evidence={"variance": var, "standard_error": se})
 
 
-def _gain_effect(ctx: Context, fit: Fit) -> Effect:
+def joint_spread(ctx: Context, fit: Fit, linear: bool = False) -> dict | None:
+    """Gain spread and dark-rate spread, jointly. In bins of the model's light rate ``L`` the
+    residual rates ``r = (e / C - 1) lambda`` of the two halves of the fit window covary as
+    ``sigma_g^2 mean(L^2) + V_d`` (a gain multiplies the light, a dark rate adds to it), so a
+    chart with a range of radiances separates them; weighted least squares over the bins.
+    A noise-free reset to zero leaves only long intervals: then the pooled relative covariance
+    is all gain. Also ``dark_shift``: the intercept (over ``L``) of the bin means of the whole
+    window's measured rate minus the adopted model's (the refit at gamma = 1 if ``linear``, as
+    effects._adopted), over ``a R_b``: the mean dark rate that model misses (the fit leaves the
+    upper tail of a spread dark map out as outliers where the light is weak). None without a
+    reference or with too few pixels."""
     st = fit.structure
     if ctx.self_ref or st.e is None:
-        return unavailable("gain_nonuniformity", {"sigma": None}, "not separable from scene texture without a reference")
+        return None
     H, W = ctx.shape
-    C = np.tile(st.column_factors, H)
     g = st.good & np.isfinite(st.e1) & np.isfinite(st.e2)
     if g.sum() < 50:
+        return None
+    C = np.tile(st.column_factors, H) * _row_factors(st.e, g, H, W)  # rows: outside the catalogue
+    if ctx.zero_quantised:  # only long intervals are usable: too narrow a range of light to separate
+        var, se = _cov_estimate(st.e1[g] / C[g], st.e2[g] / C[g])
+        return {"gain_var": var, "gain_se": se, "dark_var": 0.0, "dark_se": math.inf}
+    # every pixel with a rate but the hot ones: st.good cuts relative residuals, which removes the
+    # tail of a spread dark map where the light is weak only, so its variance would seem to grow
+    # with the light (and be read as gain)
+    g = np.isfinite(st.e) & np.isfinite(st.e1) & np.isfinite(st.e2) & ~st.hot
+    lam = fit.rate.lam_pred
+    light = np.maximum(lam - fit.rate.a * ctx.Rb * (ctx.db + fit.rate.d), 0.0)
+    r1, r2 = ((e / C - 1.0) * lam for e in (st.e1, st.e2))
+    a_ad, _, _, lam_ad = _adopted(fit, {"nonlinearity": not linear})
+    rd = (st.e / C * lam - lam_ad) / np.maximum(a_ad * ctx.Rb, 1e-12)
+    edges = np.quantile(light[g], np.linspace(0, 1, SPREAD_BINS + 1)[1:-1])
+    which = np.searchsorted(edges, light)
+    rows, means, noise = [], [], np.zeros(SPREAD_BINS)
+    for b in range(SPREAD_BINS):
+        m = g & (which == b)
+        if m.sum() >= 10:
+            cov, se = _cov_estimate(r1[m], r2[m])
+            # the bin's own sampling error too: a heavy-tailed (lognormal) dark map makes the
+            # products scatter far beyond the counting noise the null-hypothesis error knows
+            p = (r1[m] - r1[m].mean()) * (r2[m] - r2[m].mean())
+            se = max(se, float(np.std(p)) / math.sqrt(p.size))
+            rows.append((float(np.mean(light[m] ** 2)), cov, se))
+            means.append((float(np.mean(light[m])), float(np.mean(rd[m])), float(np.std(rd[m])) / math.sqrt(m.sum())))
+            noise[b] = float(np.var(r1[m] - r2[m])) / 4.0  # counting noise of the whole window
+    out = _spread_regression(np.array(rows), edges, noise)
+    if out is not None:
+        shift = _line_fit(np.array(means))
+        out.update(dark_shift=shift[0], dark_shift_se=shift[1])
+    return out
+
+
+def _line_fit(rows: np.ndarray) -> tuple[float, float]:
+    """``(intercept, its standard error)`` of ``y_b = s x_b + intercept`` by weighted least squares
+    over ``rows [(x, y, se)]``."""
+    x, y, se = rows.T
+    A = np.stack([np.ones_like(x), x], axis=1) / np.maximum(se, 1e-18)[:, None]
+    try:
+        cov = np.linalg.inv(exact.gram(A))
+    except np.linalg.LinAlgError:
+        return 0.0, math.inf
+    theta = exact.matvec(cov, exact.rmatvec(A, y / np.maximum(se, 1e-18)))
+    return float(theta[0]), float(math.sqrt(cov[0, 0]))
+
+
+def _row_factors(e, ok, H, W) -> np.ndarray:
+    """``[P]`` each pixel's row median of ``e`` over pixels ``ok`` (median 1): a row pattern is
+    not in the catalogue, and must not be read as per-pixel gain (1 where no row has 4 such pixels)."""
+    rows = np.array([np.median(r[m]) if m.sum() >= 4 else np.nan for r, m in zip(e.reshape(H, W), ok.reshape(H, W))])
+    if not np.isfinite(rows).any():  # no row has 4 usable pixels: no row correction
+        return np.ones(H * W)
+    rows = np.where(np.isfinite(rows), rows, np.nanmedian(rows))
+    return np.repeat(rows / np.median(rows), W)
+
+
+def _spread_regression(rows: np.ndarray, edges, noise) -> dict | None:
+    """``cov_b = sigma_g^2 x_b + V_d`` by weighted least squares over bins ``rows [(x, cov, se)]``."""
+    if len(rows) < 3:
+        return None
+    x, y, se = rows.T
+    A = np.stack([x, np.ones_like(x)], axis=1) / np.maximum(se, 1e-18)[:, None]
+    M = exact.gram(A)
+    try:
+        cov = np.linalg.inv(M)
+    except np.linalg.LinAlgError:
+        return None
+    theta = exact.matvec(cov, exact.rmatvec(A, y / np.maximum(se, 1e-18)))
+    return {"gain_var": float(theta[0]), "gain_se": float(math.sqrt(cov[0, 0])), "dark_var": float(theta[1]),
+            "dark_se": float(math.sqrt(cov[1, 1])), "edges": edges, "noise": noise}
+
+
+def _gain_effect(ctx: Context, fit: Fit, joint: dict | None) -> Effect:
+    if ctx.self_ref or fit.structure.e is None:
+        return unavailable("gain_nonuniformity", {"sigma": None}, "not separable from scene texture without a reference")
+    if joint is None:
         return unavailable("gain_nonuniformity", {"sigma": None}, "too few usable pixels")
-    var, se = _cov_estimate(st.e1[g] / C[g], st.e2[g] / C[g])
-    return _pattern_effect("gain_nonuniformity", var, se)
+    return _pattern_effect("gain_nonuniformity", joint["gain_var"], joint["gain_se"])
 
 
-def _column_effect(ctx: Context, fit: Fit, gain_var: float) -> Effect:
-    """Column factors from the two halves of the fit window. A per-pixel gain of variance
-    ``gain_var`` shows in both halves' column means with variance ``gain_var / (pixels in the
-    column)``; that share is subtracted."""
+def _column_effect(ctx: Context, fit: Fit, joint: dict | None) -> Effect:
+    """Column factors from the two halves of the fit window. Per-pixel patterns that are the
+    same in both halves show in both halves' column means too: a gain of variance ``s_g^2``
+    with variance ``s_g^2 / n`` (``n`` pixels in the column), a dark rate of variance ``V_d``
+    with ``sum_p V_d / lambda_p^2 / n^2`` (it adds ``d_p / lambda_p`` to ``e``); both shares
+    (:func:`joint_spread`) are subtracted."""
     if ctx.self_ref:
         return _self_column_effect(ctx, fit)
     H, W = ctx.shape
@@ -88,7 +192,10 @@ def _column_effect(ctx: Context, fit: Fit, gain_var: float) -> Effect:
         return unavailable("column_pattern", {"sigma": None}, "too few usable columns")
     c1, c2 = cm[0][ok] / np.mean(cm[0][ok]), cm[1][ok] / np.mean(cm[1][ok])
     var, se = _cov_estimate(c1, c2)
-    var -= max(gain_var, 0.0) * float(np.mean(1.0 / n_col[ok]))
+    gain_var, dark_var = (max(joint["gain_var"], 0.0), max(joint["dark_var"], 0.0)) if joint else (0.0, 0.0)
+    inv_lam2 = np.where(g, 1.0 / np.maximum(fit.rate.lam_pred, 1e-12) ** 2, 0.0).reshape(H, W).sum(axis=0)
+    share = gain_var / n_col[ok] + dark_var * inv_lam2[ok] / n_col[ok] ** 2
+    var -= float(np.mean(share))
     return _pattern_effect("column_pattern", var, se)
 
 
@@ -97,6 +204,7 @@ def _self_column_effect(ctx: Context, fit: Fit) -> Effect:
     H, W = ctx.shape
     r = ctx.meas.rate.reshape(H, W)
     ok = (ctx.meas.n.reshape(H, W) >= MIN_SPIKES) & (r < 0.8) & ~fit.structure.hot.reshape(H, W)
+    ok &= ctx.static.reshape(H, W)
     with np.errstate(all="ignore"), warnings.catch_warnings():
         warnings.simplefilter("ignore", RuntimeWarning)
         ratio = r[:, 1:-1] / (0.5 * (r[:, :-2] + r[:, 2:]))
@@ -110,15 +218,37 @@ def _self_column_effect(ctx: Context, fit: Fit) -> Effect:
                  "from neighbour-column ratios (no reference)")
 
 
-def _dark_effect(ctx: Context, fit: Fit) -> Effect:
+def _dark_effect(ctx: Context, fit: Fit, joint: dict | None, linear: bool = False) -> Effect:
+    """The mean dark rate from the rate model; its spread over pixels from :func:`joint_spread`:
+    for a lognormal map of mean ``mu`` and variance ``V``, ``spread^2 = log(1 + V / mu^2)`` and
+    the median is ``mu exp(-spread^2 / 2)``. With a spread the mean is the rate model's plus
+    ``dark_shift`` (the tail the fit left out). ``d`` is that of the model the extended sensor
+    adopts (``linear``: the refit at gamma = 1 when the nonlinearity is not detected: a gamma
+    below 1 lifts the darkest pixels as a dark rate does). Detected if the mean or the spread
+    passes its gates."""
     if ctx.self_ref:
-        return unavailable("dark_current", {"rate": None}, "needs a reference radiance")
-    d, se = fit.rate.d, fit.rate.se_d
-    return judge("dark_current", d, d / max(se, 1e-15), {"rate": d}, evidence={"standard_error": se})
+        return unavailable("dark_current", {"rate": None, "spread": None}, "needs a reference radiance")
+    d, se = _adopted(fit, {"nonlinearity": not linear})[2], fit.rate.se_d
+    var, vse = (joint["dark_var"], joint["dark_se"]) if joint else (0.0, math.inf)
+    spread_z = var / max(vse, 1e-30)
+    spread_on = spread_z >= GATES["dark_current"][1] and d > 0 and math.sqrt(max(var, 0.0)) >= GATES["dark_current"][0]
+    if spread_on and math.isfinite(joint.get("dark_shift_se", math.inf)):
+        d = max(d + joint["dark_shift"], d)  # the tail adds: a negative shift is noise
+        se = math.hypot(se, joint["dark_shift_se"])
+    spread = math.sqrt(math.log1p(max(var, 0.0) / d ** 2)) if spread_on else 0.0
+    median = d * math.exp(-spread ** 2 / 2)
+    eff = judge("dark_current", median, d / max(se, 1e-15), {"rate": median, "spread": spread, "mean_rate": d},
+                evidence={"standard_error": se, "variance": var, "variance_se": vse, "spread_z": spread_z,
+                          "joint": joint})
+    if spread_on and not eff.detected:
+        eff = replace(eff, detected=True, note="detected by its spread over pixels")
+    return eff
 
 
-def _hot_effect(fit: Fit) -> Effect:
+def _hot_effect(ctx: Context, fit: Fit) -> Effect:
     """Hot pixels found, scaled up by the fraction of pixels where one could have been found."""
+    if ctx.self_ref:
+        return unavailable("hot_pixels", {"count": None}, "with 'self' a hot pixel is a bright point of the scene")
     st = fit.structure
     found = int(st.hot.sum())
     frac = float(st.testable.mean())
@@ -127,6 +257,19 @@ def _hot_effect(fit: Fit) -> Effect:
     return judge("hot_pixels", count if found >= GATES["hot_pixels"][0] else 0, float(found),
                  {"count": count, "found": found, "testable_fraction": frac,
                   "median_rate": float(np.median(rates)) if found else None})
+
+
+def _dead_effect(ctx: Context, fit: Fit) -> Effect:
+    """Pixels that never fire in the fit window where the model expects DEAD_MIN_SPIKES or more,
+    scaled up by the fraction of pixels where one could have been found."""
+    if ctx.self_ref:
+        return unavailable("dead_pixels", {"count": None}, "with 'self' a dead pixel is a dark point of the scene")
+    testable = (fit.rate.lam_pred * ctx.Tf >= DEAD_MIN_SPIKES) & ctx.static
+    dead = testable & (ctx.meas.n == 0)
+    found, frac = int(dead.sum()), float(testable.mean())
+    count = int(round(found / frac)) if frac > 0 else found
+    return judge("dead_pixels", count if found >= GATES["dead_pixels"][0] else 0, float(found),
+                 {"count": count, "found": found, "testable_fraction": frac}, evidence={"mask": dead})
 
 
 def _gamma_effect(ctx: Context, fit: Fit) -> Effect:
@@ -198,12 +341,15 @@ def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
     vm, vs = stats.excess_interval_var(ctx.meas, noisy), stats.excess_interval_var(ps, noisy)
     lam = rate_from_interval(ctx.meas.isi_mean, deterministic.refractory_frames)
     ok = np.isfinite(vm) & np.isfinite(vs) & np.isfinite(lam) & (lam > 0) & (ctx.meas.n_isi >= 8)
-    ok &= ~fit.structure.hot
+    ok &= ~fit.structure.hot & ctx.static
     if ok.sum() < 20:
         return unavailable("shot_noise", {"electrons": None}, "too few pixels with enough intervals")
     inv, se, model_level = _inverse_electrons(vm[ok] - vs[ok], vs[ok], lam[ok], ctx.meas.n_isi[ok])
     electrons = 1.0 / inv if inv > 0 else None
-    eff = judge("shot_noise", electrons, inv / max(se, 1e-15), {"electrons": electrons},
+    jitter = math.sqrt(inv) if inv > 0 else None
+    eff = judge("shot_noise", electrons, inv / max(se, 1e-15),
+                {"electrons": electrons, "threshold_jitter_equivalent": jitter},
+                JITTER_NOTE if electrons else "",
                 evidence={"inverse_electrons": inv, "standard_error": se, "model_level": model_level})
     # flicker (or motion) the model reproduces makes intervals vary like 1 / lambda^2 too; an
     # excess below 10 % of that deterministic variance is within the error of the fitted modulation
@@ -237,11 +383,13 @@ def build_sensor(ctx: Context, fit: Fit, found: dict, electrons: float) -> Senso
     the fitted maps and values; shot noise of ``electrons`` (0: none)."""
     H, W = ctx.shape
     on = {k: v.detected for k, v in found.items()}
-    R = _responsivity(ctx, fit, on)
-    d = _dark_rate(ctx, fit, on, R)
+    R = _responsivity(ctx, fit, found, on)
+    d = _dark_rate(ctx, fit, found, on, R)
     kw = dict(responsivity=R.reshape(H, W) if not np.allclose(R, 1.0) else None,
               dark_rate=d.reshape(H, W) if d.any() else None)
     kw.update(_scalar_parameters(fit, found, on))
+    if on.get("crosstalk"):
+        kw["crosstalk_fraction"] = _adopted(fit, on)[1]
     if electrons and math.isfinite(electrons):
         kw["electrons"] = float(electrons)
     base = ctx.baseline
@@ -249,29 +397,75 @@ def build_sensor(ctx: Context, fit: Fit, found: dict, electrons: float) -> Senso
                         notes={"fitted_by": "spikegen diagnose", "effects": [k for k, v in on.items() if v]}, **kw)
 
 
-def _responsivity(ctx: Context, fit: Fit, on: dict) -> np.ndarray:
-    """``[P]``: the baseline's scaled by ``a``, times column factors / per-pixel ``e`` if detected."""
+def _adopted(fit: Fit, on: dict) -> tuple:
+    """``(a, c, d, lambda [P])`` of the rate model the extended sensor adopts: the fit itself if
+    the nonlinearity is adopted (or without a refit), else the refit at gamma = 1."""
+    r = fit.rate
+    if on.get("nonlinearity") or r.linear is None:
+        return r.a, r.c, r.d, r.lam_pred
+    return (*r.linear, r.lam_linear)
+
+
+def _responsivity(ctx: Context, fit: Fit, found: dict, on: dict) -> np.ndarray:
+    """``[P]``: the baseline's scaled by ``a``, times column factors ``C`` if detected and the
+    per-pixel gain beyond the columns if detected (``e / C``, or its gain share over ``C`` when a
+    dark spread is detected too: the per-pixel gain alone does not reproduce a column pattern);
+    0 at dead pixels."""
     H, W = ctx.shape
     st = fit.structure
-    a = fit.rate.a
-    R = ctx.Rb * a
-    if on.get("column_pattern") and not ctx.self_ref:
-        R = R * np.tile(st.column_factors, H)
+    base = ctx.Rb * _adopted(fit, on)[0]
+    C = np.tile(st.column_factors, H)
+    R = base * C if on.get("column_pattern") and not ctx.self_ref else base
     if on.get("gain_nonuniformity") and st.e is not None:
-        C = np.tile(st.column_factors, H) if on.get("column_pattern") else np.ones(H * W)
-        use = np.isfinite(st.e) & ~st.hot
-        R = np.where(use, ctx.Rb * a * st.e, ctx.Rb * a * C)
+        gain, _ = _pixel_split(ctx, fit, found, on)
+        R = np.where(np.isfinite(gain) & ~st.hot, R * gain / C, R)
+    if on.get("dead_pixels"):
+        R = np.where(found["dead_pixels"].evidence["mask"], 0.0, R)
     return R
 
 
-def _dark_rate(ctx: Context, fit: Fit, on: dict, R: np.ndarray) -> np.ndarray:
-    """``[P]`` spikes per frame: the baseline's, plus the fitted dark rate and hot pixels if detected."""
+def _pixel_split(ctx: Context, fit: Fit, found: dict, on: dict) -> tuple[np.ndarray, np.ndarray]:
+    """``(gain factor [P] with the column's, extra dark rate [P] in spikes per frame)`` of each
+    pixel (NaN where unknown). Without a detected dark spread the gain is the measured over the
+    adopted model rate (``e`` itself at gamma as fitted; where ``e`` is not defined, as near
+    saturation, the measured rate, at most one spike per frame). With one, the residual rate ``eps = (e / C - 1) lambda``
+    is split by its expected shares (best linear prediction): ``gain = C (1 + s_g^2 L eps / den)``,
+    ``dark = V_d eps / den``, ``den = s_g^2 L^2 + V_d + noise``."""
+    H, W = ctx.shape
+    st = fit.structure
+    a, _, d, lam = _adopted(fit, on)
+    with np.errstate(all="ignore"):
+        isi = fit.rate.isi_eq if fit.rate.isi_eq is not None else fit.rate.isi
+        measured = np.clip(rate_from_interval(isi, fit.rate.delta), 0.0, 1.0)
+        measured = np.where(isi - fit.rate.delta >= 1.0, measured, np.where(isi <= 1.0, 1.0, np.nan))
+        lam_obs = np.where(np.isfinite(st.e), st.e * fit.rate.lam_pred, measured)
+    ratio = lam_obs / np.maximum(lam, 1e-12)
+    dark = found["dark_current"]
+    joint = dark.evidence.get("joint")
+    if not (on.get("dark_current") and dark.parameters.get("spread") and joint):
+        return ratio, np.zeros(H * W)
+    C = np.tile(st.column_factors, H)
+    light = np.maximum(lam - a * ctx.Rb * (ctx.db + d), 0.0)
+    eps = np.nan_to_num(ratio / C - 1.0) * lam
+    sg2 = max(joint["gain_var"], 0.0) if on.get("gain_nonuniformity") else 0.0
+    vd = max(joint["dark_var"], 0.0)
+    noise = joint["noise"][np.searchsorted(joint["edges"], light)]
+    den = sg2 * light ** 2 + vd + noise
+    return C * (1.0 + sg2 * light * eps / den), vd * eps / den
+
+
+def _dark_rate(ctx: Context, fit: Fit, found: dict, on: dict, R: np.ndarray) -> np.ndarray:
+    """``[P]`` spikes per frame: the baseline's, plus the fitted dark rate (and its per-pixel
+    share of the residual when a spread is detected) and hot pixels if detected; 0 at dead pixels."""
     d = ctx.db.copy()
     if on.get("dark_current"):
-        d = d + max(fit.rate.d, 0.0)
+        _, extra = _pixel_split(ctx, fit, found, on)
+        d = np.maximum(d + max(_adopted(fit, on)[2], 0.0) + extra / np.maximum(R, 1e-6), 0.0)
     if on.get("hot_pixels") and not ctx.self_ref:  # with 'self' the radiance already holds them
         hot = fit.structure.hot
         d[hot] += fit.structure.excess[hot] / np.maximum(R[hot], 1e-6)
+    if on.get("dead_pixels"):
+        d = np.where(found["dead_pixels"].evidence["mask"], 0.0, d)
     return d
 
 

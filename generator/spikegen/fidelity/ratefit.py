@@ -11,8 +11,9 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..sensor import interpolation_weights, neighbour_mean
-from . import stats
-from .records import GATES, MIN_SPIKES, Context, FlickerFit, RateFit, interval_frames
+from . import exact, stats
+from .records import (GATES, MIN_COHERENCE, MIN_SPIKES, Context, FlickerFit, RateFit, equivalent_isi, flicker_mean_isi,
+                      flicker_rate_table, interval_frames)
 
 GAMMA_RANGE = (0.25, 4.0)
 DELTA_MAX = 6.0
@@ -43,7 +44,7 @@ def _bases(ctx: Context, gamma: float):
         return xg.reshape(-1), (neighbour_mean(xg) - xg).reshape(-1)
     ts = np.unique(np.linspace(0, ctx.Tf - 1, min(ctx.Tf, 48)).astype(int))
     wts = interpolation_weights(K, ctx.frames)[ts]
-    xg = (wts @ ctx.X.reshape(K, -1)).reshape(-1, H, W) ** gamma
+    xg = exact.interpolate(wts, ctx.X.reshape(K, -1)).reshape(-1, H, W) ** gamma
     return xg.mean(0).reshape(-1), (neighbour_mean(xg) - xg).mean(0).reshape(-1)
 
 
@@ -72,17 +73,17 @@ def _solve(A, isi, delta, sqrt_w, keep, want_cov=False, target=None):
     sw = sqrt_w[ok] * x[ok]  # sqrt(w) / lambda_obs
     Aw = A[ok] * sw[:, None]
     bw = sqrt_w[ok]  # lambda_obs * sw
-    M = Aw.T @ Aw
+    M = exact.gram(Aw)
     try:
-        theta = np.linalg.solve(M, Aw.T @ bw)
+        theta = np.linalg.solve(M, exact.rmatvec(Aw, bw))
     except np.linalg.LinAlgError:
         return None
     cov = None
     if want_cov:
-        res = bw - Aw @ theta
-        s2 = float(res @ res) / max(ok.sum() - A.shape[1], 1)
+        res = bw - exact.matvec(Aw, theta)
+        s2 = exact.dot(res, res) / max(ok.sum() - A.shape[1], 1)
         cov = np.linalg.inv(M) * s2
-    return theta, cov, A @ theta
+    return theta, cov, exact.matvec(A, theta)
 
 
 def _solve_censored(A, isi, delta, sqrt_w, keep, want_cov=False):
@@ -104,8 +105,9 @@ def _solve_censored(A, isi, delta, sqrt_w, keep, want_cov=False):
     return sol, float(np.sum(w * rel * rel) / np.sum(w))
 
 
-def _objective(isi, lam_pred, delta, w, keep):
-    rel = (isi[keep] - interval_frames(lam_pred[keep], delta)) / isi[keep]
+def _objective(isi, predicted, w, keep):
+    """Weighted mean squared relative error of the predicted mean intervals."""
+    rel = (isi[keep] - predicted[keep]) / isi[keep]
     return float(np.sum(w[keep] * rel * rel) / np.sum(w[keep]))
 
 
@@ -129,6 +131,8 @@ class _RateProblem:
     base_ok: np.ndarray  # [P] pixels with enough spikes (and not clipped at flicker peaks)
     w: np.ndarray  # [P] weights: intervals counted, at most 200
     sqrt_w: np.ndarray  # [P]
+    phi: tuple | None  # flicker factors over fbar: (fit window, first half, second half); None: no flicker
+    tables: dict  # delta -> flicker_rate_table of the fit window
 
     @classmethod
     def build(cls, ctx: Context, flicker: FlickerFit | None, fbar: float) -> "_RateProblem":
@@ -140,18 +144,47 @@ class _RateProblem:
         w = np.minimum(meas.n - 1, 200).astype(np.float64)
         B0, B1 = _bases(ctx, 1.0)
         use_c = float(np.std(B1)) > 0.01 * float(np.mean(B0))
-        return cls(ctx, fbar, use_c, isi, base_ok, w, np.sqrt(np.maximum(w, 0.0)))
+        phi = None  # a flicker shared by all pixels; never with constant intervals (a noise-free
+        # reset to zero, whose censored fit needs the whole-frame intervals as measured)
+        if (flicker is not None and flicker.depth > GATES["flicker"][0] and flicker.coherence >= MIN_COHERENCE
+                and not ctx.zero_quantised):
+            t = np.arange(ctx.Tf)
+            f = (1.0 + flicker.depth * np.sin(2 * np.pi * t / flicker.period_frames + flicker.phase_rad)) / fbar
+            half = ctx.Tf // 2
+            phi = (f, f[:half], f[half:])
+        return cls(ctx, fbar, use_c, isi, base_ok, w, np.sqrt(np.maximum(w, 0.0)), phi, {})
+
+    def table(self, delta):
+        """records.flicker_rate_table of readout ``delta`` over the fit window (None without flicker)."""
+        if self.phi is None:
+            return None
+        key = float(delta)
+        if key not in self.tables:
+            self.tables[key] = flicker_rate_table(key, self.phi[0])
+        return self.tables[key]
+
+    def isi_at(self, delta) -> np.ndarray:
+        """``[P]`` the measured mean intervals as the flicker-free intervals of readout ``delta``
+        (records.equivalent_isi; the intervals themselves without flicker): the target of the
+        linear step. The objective compares the measured intervals themselves with the model's
+        flicker-averaged ones (:meth:`predicted`), so that it means the same at every delta."""
+        return np.where(self.base_ok, equivalent_isi(self.isi, delta, self.table(delta)), 0.0)
+
+    def predicted(self, lam_pred, delta) -> np.ndarray:
+        """``[P]`` the model's mean interval over the fit window (flicker included)."""
+        return flicker_mean_isi(lam_pred, delta, self.table(delta))
 
     def fit_at(self, delta, gamma, keep, want_cov=False):
         """``(objective, (theta, cov, lam_pred [P]) or None)`` at fixed ``(delta, gamma)``."""
         A = _design(self.ctx, self.fbar, gamma, self.use_c)
+        isi = self.isi_at(delta)
         if self.ctx.zero_quantised:
-            sol, obj = _solve_censored(A, self.isi, delta, self.sqrt_w, keep, want_cov)
+            sol, obj = _solve_censored(A, isi, delta, self.sqrt_w, keep, want_cov)
             return obj, sol
-        sol = _solve(A, self.isi, delta, self.sqrt_w, keep, want_cov)
+        sol = _solve(A, isi, delta, self.sqrt_w, keep, want_cov)
         if sol is None:
             return math.inf, None
-        return _objective(self.isi, sol[2], delta, self.w, keep), sol
+        return _objective(self.isi, self.predicted(sol[2], delta), self.w, keep), sol
 
     def best_gamma(self, delta, keep, iters=22) -> float:
         g = stats.golden_min(lambda gm: self.fit_at(delta, math.exp(gm), keep)[0], *np.log(GAMMA_RANGE), iters=iters)
@@ -176,23 +209,34 @@ class _RateProblem:
 
     def outliers(self, delta, lam_pred, keep) -> np.ndarray:
         """``[P]`` pixels whose relative interval error is beyond 6 robust SDs (and 1 %)."""
+        isi = self.isi
         if self.ctx.zero_quantised:
-            err = self.isi - delta + 0.5 - np.ceil(1.0 / np.clip(lam_pred, 1e-12, 1.0) - 1e-9)
+            err = isi - delta + 0.5 - np.ceil(1.0 / np.clip(lam_pred, 1e-12, 1.0) - 1e-9)
         else:
-            err = self.isi - interval_frames(lam_pred, delta)
-        rel = np.where(self.base_ok, err / np.where(self.base_ok, self.isi, 1.0), 0.0)
+            err = isi - self.predicted(lam_pred, delta)
+        rel = np.where(self.base_ok, err / np.where(self.base_ok, isi, 1.0), 0.0)
         sd = stats.robust_sd(rel[keep])
         return self.base_ok & (np.abs(rel) > max(6 * sd, 0.01))
 
-    def result(self, delta, gamma, obj, solution, keep, outlier) -> RateFit:
+    def result(self, delta, gamma, obj, solution, fit_keep, keep, outlier) -> RateFit:
+        """The record of ``solution`` (fitted on pixels ``fit_keep`` with objective ``obj``);
+        ``keep`` and ``outlier`` after its outlier update."""
         theta, cov, lam_pred = solution
         a = float(theta[0])
-        se_gamma = _gamma_se(lambda gm: self.fit_at(delta, gm, keep)[0], gamma, obj, int(keep.sum()))
+        # the curvature around obj on the same pixels as obj (the updated keep has another objective)
+        se_gamma = _gamma_se(lambda gm: self.fit_at(delta, gm, fit_keep)[0], gamma, obj, int(fit_keep.sum()))
+        _, linear = self.fit_at(delta, 1.0, keep)
+        if linear is None:
+            linear = solution
+        t1 = linear[0]
         return RateFit(a=a, gamma=gamma, c=float(theta[1] / a) if self.use_c else 0.0, d=float(theta[-1] / a),
                        delta=float(delta), fbar=self.fbar, use_c=self.use_c,
                        se_c=math.sqrt(float(cov[1, 1]) / a ** 2) if self.use_c else math.inf,
                        se_d=math.sqrt(float(cov[-1, -1])) / abs(a), se_gamma=se_gamma, objective=obj,
-                       lam_pred=lam_pred, isi=np.where(self.base_ok, self.isi, np.nan), keep=keep, outlier=outlier)
+                       lam_pred=lam_pred, isi=np.where(self.base_ok, self.isi, np.nan),
+                       isi_eq=np.where(self.base_ok, self.isi_at(delta), np.nan), phi=self.phi, keep=keep, outlier=outlier,
+                       linear=(float(t1[0]), float(t1[1] / t1[0]) if self.use_c else 0.0, float(t1[-1] / t1[0])),
+                       lam_linear=linear[2])
 
 
 def fit_rate_model(ctx: Context, flicker: FlickerFit | None, fbar: float, outlier: np.ndarray) -> RateFit:
@@ -205,18 +249,19 @@ def fit_rate_model(ctx: Context, flicker: FlickerFit | None, fbar: float, outlie
         delta = prob.search_delta(keep, rnd, d0)
         gamma = prob.best_gamma(delta, keep, iters=30)
         obj, solution = prob.fit_at(delta, gamma, keep, want_cov=True)
+        fit_keep = keep
         outlier = prob.outliers(delta, solution[2], keep)
         keep, d0 = prob.base_ok & ~outlier, delta
-    return prob.result(delta, gamma, obj, solution, keep, outlier)
+    return prob.result(delta, gamma, obj, solution, fit_keep, keep, outlier)
 
 
 # ---------------------------------------------------------------------- flicker
 def fit_flicker(ctx: Context, rate: RateFit | None) -> FlickerFit | None:
-    """Sinusoid in the population signal of unsaturated, non-outlier pixels (stats.fit_sine);
+    """Sinusoid in the population signal of unsaturated, non-outlier, static pixels (stats.fit_sine);
     the expected light comes from ``rate``, or (None) from the measured rates. None if fewer
     than 16 pixels qualify."""
     lam, weight, outlier = _light_weights(ctx, rate)
-    mask = (ctx.meas.rate < 0.45) & (lam < 0.6) & ~outlier & (ctx.meas.n >= 1)
+    mask = (ctx.meas.rate < 0.45) & (lam < 0.6) & ~outlier & (ctx.meas.n >= 1) & ctx.static
     if mask.sum() < 16:
         return None
     light_of = _light_of(ctx, weight)
@@ -246,7 +291,7 @@ def _light_of(ctx: Context, weight: np.ndarray):
     wts = interpolation_weights(K, ctx.frames)[:ctx.Tf]
     xk = ctx.X.reshape(K, -1)
     scale = weight / np.maximum(xk.mean(0), 1e-9)
-    return lambda m: wts @ (xk[:, m] * scale[m]).sum(axis=1)
+    return lambda m: exact.matvec(wts, (xk[:, m] * scale[m]).sum(axis=1))
 
 
 def _coherence(ctx: Context, lam, mask, light_of, period_frames) -> float:

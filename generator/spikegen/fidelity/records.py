@@ -20,21 +20,22 @@ from .synth import EFFECTS, envelope_size
 
 SIM_SEED = 20240617  # seed of the diagnosis' own simulations (the measured stream's is unknown)
 MIN_SPIKES = 3  # a pixel needs this many spikes for its rate to count
+MIN_COHERENCE = 0.9  # flicker: agreement of the sinusoid across four pixel groups (1 = identical)
 
 # z gate of each effect (its statistical significance must reach this)
 Z_GATES = {"gain_nonuniformity": 6.0, "column_pattern": 5.0, "dark_current": 6.0, "hot_pixels": 0.0,
            "shot_noise": 6.0, "reset_to_zero": 0.0, "refractory": 0.0, "flicker": 8.0, "crosstalk": 6.0,
-           "nonlinearity": 6.0}
+           "nonlinearity": 6.0, "dead_pixels": 0.0}
 # the weakest size the tools must find (synth.ENVELOPE): an effect's score is its size over this
 ENVELOPE_SIZE = {name: envelope_size(name) for name in EFFECTS}
 
 
 def _size_gate(name: str) -> float:
     """Half the envelope's weakest effect: twice its electrons for shot noise (the variance it
-    adds goes as 1 / electrons), a whole number of pixels for hot pixels (rounded down)."""
+    adds goes as 1 / electrons), a whole number of pixels for hot and dead pixels (rounded down)."""
     if name == "shot_noise":
         return 2.0 * ENVELOPE_SIZE[name]
-    if name == "hot_pixels":
+    if name in ("hot_pixels", "dead_pixels"):
         return math.floor(ENVELOPE_SIZE[name] / 2.0)
     return ENVELOPE_SIZE[name] / 2.0
 
@@ -48,6 +49,41 @@ def interval_frames(lam: np.ndarray, delta: float) -> np.ndarray:
     """Mean interval of the rate model, ``ISI = delta + max(1, 1 / lambda)`` frames, for
     ``lam`` spikes per frame (any shape) and the readout's interval offset ``delta`` frames."""
     return delta + 1.0 / np.clip(lam, 1e-12, 1.0)
+
+
+def flicker_rate_table(delta: float, phi: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(lambda [800], mean rate [800])``: the mean over the frames of ``1 / interval_frames(lambda
+    phi_t, delta)`` on a geometric grid of steady rates ``lambda`` up to the last that is not
+    saturated at every frame (beyond it the mean rate stays at its last value). ``phi [T]``: the
+    flicker factor of each frame over the mean the rate model uses. Under flicker the mean rate is
+    below the rate at the mean light once ``delta > 0`` (the interval law is not linear in
+    ``1 / lambda``)."""
+    phi = np.asarray(phi, dtype=np.float64)
+    grid = np.geomspace(1e-6, 1.0 / max(float(phi.min()), 1e-6), 800)
+    return grid, (1.0 / interval_frames(grid[:, None] * phi[None, :], delta)).mean(axis=1)
+
+
+def flicker_mean_isi(lam: np.ndarray, delta: float, table) -> np.ndarray:
+    """The mean interval, frames, of steady rates ``lam`` under the flicker of ``table``
+    (:func:`flicker_rate_table`; None: ``interval_frames(lam, delta)``)."""
+    if table is None:
+        return interval_frames(lam, delta)
+    return 1.0 / np.interp(lam, *table)
+
+
+def equivalent_isi(isi_frames: np.ndarray, delta: float, table) -> np.ndarray:
+    """The inverse of :func:`flicker_mean_isi`: the interval ``interval_frames(lambda, delta)`` of
+    the steady rate ``lambda`` whose flickering version gives the mean intervals ``isi_frames``
+    (any shape; where they are shorter than the saturated mean interval, or not positive, they are
+    returned as they are). ``table``: :func:`flicker_rate_table` (None: ``isi_frames`` itself)."""
+    if table is None:
+        return isi_frames
+    grid, mean_rate = table
+    with np.errstate(all="ignore"):
+        rate = 1.0 / np.asarray(isi_frames, dtype=np.float64)
+        lam = np.interp(rate, mean_rate, grid)
+        ok = np.isfinite(rate) & (rate > 0) & (rate < mean_rate[-1])
+        return np.where(ok, interval_frames(lam, delta), isi_frames)
 
 
 def rate_from_interval(isi_frames: np.ndarray, delta: float) -> np.ndarray:
@@ -73,6 +109,7 @@ class Context:
     Rb: np.ndarray  # [P] the baseline's responsivity
     db: np.ndarray  # [P] the baseline's dark rate, spikes per frame
     constant_fraction: float  # of pixels whose intervals never vary (noise-free reset to zero)
+    static: np.ndarray | None = None  # [P] bool, pixels whose rate does not change (all with a reference)
 
     @property
     def shape(self) -> tuple:
@@ -113,8 +150,18 @@ class RateFit:
     objective: float = math.inf  # weighted mean squared relative interval error
     lam_pred: np.ndarray | None = None  # [P] model rate, spikes per frame
     isi: np.ndarray | None = None  # [P] measured mean interval, frames (NaN where not fitted)
+    # [P] the interval the fitted readout would give each pixel at the mean light of the fit window
+    # (equivalent_isi: isi itself without flicker); the model's lam_pred predicts this one
+    isi_eq: np.ndarray | None = None
+    # flicker factors of the frames over the model's mean: (fit window, its first half, its second
+    # half), each [frames]; None without a fitted flicker
+    phi: tuple | None = None
     keep: np.ndarray | None = None  # [P] pixels the final fit used
     outlier: np.ndarray | None = None  # [P] pixels left out as outliers (hot pixels, dust)
+    # the linear parameters and rate refitted at gamma = 1 (same delta and pixels), for a model
+    # that does not adopt the nonlinearity; None where not fitted
+    linear: tuple | None = None  # (a, c, d)
+    lam_linear: np.ndarray | None = None  # [P]
 
     @classmethod
     def identity(cls, delta: float, pixels: int) -> "RateFit":

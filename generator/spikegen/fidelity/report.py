@@ -35,6 +35,8 @@ def _plots(result, spikes, radiance, out: Path) -> list:
     names = []
     if not isinstance(radiance, str) and result.fit.rate.lam_pred is not None:
         names += _model_plots(result, radiance, out)
+    if getattr(result, "static", None) is not None and not result.static.all():
+        names.append(_static_plot(result.static, out))
     names.append(_spectrum_plot(spikes[:Tf], out))
     names.append(_isi_plot(spikes[:Tf], out))
     return names
@@ -71,6 +73,17 @@ def _model_plots(result, radiance, out: Path) -> list:
         save_figure(out / "residual_map.png", map_plot)
         names.append(("residual_map.png", "Measured over modelled rate per pixel (gain, columns, hot pixels)."))
     return names
+
+
+def _static_plot(static, out: Path) -> tuple:
+    """The pixels judged (static) and those left out because the scene moves there."""
+
+    def draw(ax):
+        ax.imshow(static, cmap="gray", vmin=0, vmax=1, interpolation="nearest")
+        ax.set_title(f"static pixels (white): {int(static.sum())} of {static.size}")
+
+    save_figure(out / "static_mask.png", draw)
+    return "static_mask.png", "Pixels whose rate does not change (white); only these are judged with 'self'."
 
 
 def _spectrum_plot(fit_spikes, out: Path) -> tuple:
@@ -120,10 +133,24 @@ def markdown(result, figures=()) -> str:
               "| measure | baseline | extended | meaning |", "|---|---|---|---|"]
     for k, v in result.gain().items():
         lines.append(f"| {k} | {v['baseline']:.4g} | {v['extended']:.4g} | {stats.MEASURES[k]} |")
-    lines += [""]
+    lines += _heldout_lines(result)
     for name, caption in figures:
         lines += [f"![{caption}]({name})", "", caption, ""]
     return "\n".join(lines)
+
+
+def _heldout_lines(result) -> list:
+    """The held-out score of the ideal and the fitted model, and what the fitted one does not explain."""
+    held = getattr(result, "heldout", None) or {}
+    lines = [""]
+    if held:
+        lines += ["## Held-out score", "", f"{held['measure']} (higher is better): ideal {held['ideal']:.4g}, "
+                  f"fitted {held['fitted']:.4g}; {held['pixels']} pixels judged.", ""]
+    found = getattr(result, "unexplained", None) or []
+    lines += ["## Unexplained", "", "Statistics of the held-out frames the fitted model does not reproduce: "
+              + (", ".join(f"`{u['statistic']}` ({u['value']:.3g}, z {u['z']:.3g}: {u['meaning']})" for u in found)
+                 or "none") + ".", ""]
+    return lines
 
 
 def write_report(result, spikes, radiance, out_dir) -> Path:

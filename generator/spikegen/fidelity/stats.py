@@ -13,6 +13,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..fpn import robust_sd  # noqa: F401  (one robust sigma for the project; fidelity code imports it from here)
+from . import exact
 
 MAX_SPAN = 4  # span (in ISIs) of the long-span timing variance, see PixelStats.span_var
 
@@ -118,6 +119,31 @@ def _isi_extremes(isi, isi_pix, P):
     return isi_min, isi_max
 
 
+def interval_pixels(spikes: np.ndarray) -> np.ndarray:
+    """``int64 [n_isi_total]``: the pixel of each interval, in the order of ``PixelStats.isi_values``."""
+    pix, _ = spike_times(spikes)
+    return pix[1:][pix[1:] == pix[:-1]]
+
+
+def serial_correlation(spikes: np.ndarray) -> np.ndarray:
+    """``[P]`` lag-1 correlation of consecutive intervals of each pixel (NaN below 4 pairs or
+    where the intervals do not vary)."""
+    P = int(np.prod(spikes.shape[1:]))
+    pix, t = spike_times(spikes)
+    same2 = (pix[2:] == pix[1:-1]) & (pix[1:-1] == pix[:-2])
+    a = (t[1:-1] - t[:-2])[same2].astype(np.float64)
+    b = (t[2:] - t[1:-1])[same2].astype(np.float64)
+    g = pix[2:][same2]
+    n = np.bincount(g, minlength=P).astype(np.float64)
+    sums = [np.bincount(g, weights=v, minlength=P) for v in (a, b, a * b, a * a, b * b)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ma, mb = sums[0] / n, sums[1] / n
+        cov = sums[2] / n - ma * mb
+        va, vb = sums[3] / n - ma * ma, sums[4] / n - mb * mb
+        r = cov / np.sqrt(va * vb)
+    return np.where((n >= 4) & (va > 1e-12) & (vb > 1e-12), r, np.nan)
+
+
 def window_rate(spikes: np.ndarray) -> np.ndarray:
     """Per-pixel rate ``[P]`` of a stream (the ``rate`` of :func:`pixel_stats`, cheaper)."""
     T = spikes.shape[0]
@@ -179,9 +205,9 @@ def _sine_design(t, light, freq):
 
 def _sine_rss(s, t, light, freq):
     A = _sine_design(t, light, freq)
-    coef, *_ = np.linalg.lstsq(A, s, rcond=None)
-    r = s - A @ coef
-    return float(r @ r), coef
+    coef = exact.lstsq(A, s)
+    r = s - exact.matvec(A, coef)
+    return exact.dot(r, r), coef
 
 
 def fit_sine(signal: np.ndarray, light: np.ndarray, min_period: float = 6.0, max_period: float | None = None) -> SineFit:
@@ -200,8 +226,8 @@ def fit_sine(signal: np.ndarray, light: np.ndarray, min_period: float = 6.0, max
     freqs = np.arange(1.0 / max_period, 1.0 / min_period, 1.0 / (4 * T))
     rss = np.array([_sine_rss(s, t, light, f)[0] for f in freqs])
     null = np.stack([np.ones_like(t), light], axis=1)
-    coef0, *_ = np.linalg.lstsq(null, s, rcond=None)
-    rss0 = float(np.sum((s - null @ coef0) ** 2))
+    coef0 = exact.lstsq(null, s)
+    rss0 = float(np.sum((s - exact.matvec(null, coef0)) ** 2))
     gain = np.maximum(rss0 - rss, 0.0)
     # significance against the neighbouring spectrum, not a white-noise formula: regular pixel
     # trains put broad excess power at the frequencies of their rates. The typical RSS reduction

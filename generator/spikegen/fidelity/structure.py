@@ -11,7 +11,7 @@ import warnings
 import numpy as np
 
 from . import stats
-from .records import MIN_SPIKES, Context, PixelStructure, RateFit, rate_from_interval
+from .records import MIN_SPIKES, Context, PixelStructure, RateFit, equivalent_isi, flicker_rate_table, rate_from_interval
 
 QUANTISED_MIN_ISI = 8.0  # noise-free reset-to-zero: intervals shorter than this say too little
 
@@ -21,15 +21,18 @@ def pixel_structure(ctx: Context, rate: RateFit) -> PixelStructure:
     if ctx.self_ref:
         return _self_structure(ctx)
     H, W = ctx.shape
-    isi, delta, lam_pred = rate.isi, rate.delta, rate.lam_pred
+    # the intervals at the fit window's mean light (equivalent_isi): what lam_pred predicts
+    isi, delta, lam_pred = rate.isi_eq if rate.isi_eq is not None else rate.isi, rate.delta, rate.lam_pred
     lam_obs = rate_from_interval(isi, delta)
     valid = rate.keep | rate.outlier
     valid &= (isi - delta >= 1.1) & np.isfinite(lam_obs)
     if ctx.zero_quantised:
         valid &= isi >= QUANTISED_MIN_ISI
     e = np.where(valid, lam_obs / lam_pred, np.nan)
-    e1, e2 = (np.where(valid, rate_from_interval(1.0 / np.maximum(h, 1e-12), delta) / lam_pred, np.nan)
-              for h in ctx.halves)
+    phis = rate.phi[1:] if rate.phi is not None else (None, None)
+    tables = [None if phi is None else flicker_rate_table(delta, phi) for phi in phis]
+    e1, e2 = (np.where(valid, rate_from_interval(equivalent_isi(1.0 / np.maximum(h, 1e-12), delta, table), delta)
+                       / lam_pred, np.nan) for h, table in zip(ctx.halves, tables))
     col = _column_factors(e, valid & ~rate.outlier, H, W)
     C = np.tile(col, H)
     resid = e / C - 1.0
@@ -47,8 +50,9 @@ def _hot_pixels(ctx: Context, rate: RateFit, valid, C, e, sd):
     model by 6 residual SDs (and 0.02 spikes per frame)."""
     lam_pred = rate.lam_pred
     if ctx.zero_quantised:  # any interval bounds lambda from below: 1 / lambda <= ISI - n
-        lam_lo = rate_from_interval(rate.isi, rate.delta - 0.5)
-        ok = (rate.keep | rate.outlier) & np.isfinite(lam_lo) & (rate.isi - rate.delta + 0.5 >= 1)
+        isi = rate.isi_eq if rate.isi_eq is not None else rate.isi
+        lam_lo = rate_from_interval(isi, rate.delta - 0.5)
+        ok = (rate.keep | rate.outlier) & np.isfinite(lam_lo) & (isi - rate.delta + 0.5 >= 1)
         excess = np.where(ok, lam_lo - C * lam_pred, 0.0)
     else:
         ok = valid

@@ -3,7 +3,9 @@ generator of "measured" recordings with known effects (for the hidden-effect tes
 
 Map effects are drawn so that the realised map has exactly the named statistic:
 ``R = C[column] * P[pixel]`` with ``std(C) = column sigma`` (mean 1) and ``std(P) = gain sigma``
-(median 1); ``d = rate`` everywhere plus ``count`` hot pixels of rate ``U(hot_min, hot_max)``.
+(median 1); ``d = rate * exp(spread * z)`` with ``z`` of median 0 and SD 1 over the pixels
+(so ``rate`` is the median dark rate and ``spread`` the SD of its logarithm), plus ``count`` hot
+pixels of rate ``U(hot_min, hot_max)``; ``count`` dead pixels have ``R = d = 0`` (never fire).
 """
 from __future__ import annotations
 
@@ -14,7 +16,7 @@ import numpy as np
 from ..sensor import Sensor
 
 EFFECTS = ("gain_nonuniformity", "column_pattern", "dark_current", "hot_pixels", "shot_noise", "reset_to_zero",
-           "refractory", "flicker", "crosstalk", "nonlinearity")
+           "refractory", "flicker", "crosstalk", "nonlinearity", "dead_pixels")
 
 # The detectability envelope (the issue's numbers): the weakest effect the tools must find in a
 # recording of >= 1000 frames, >= 64 x 64 pixels, intensity 32..256, radiance spanning 0.05..1.
@@ -29,11 +31,12 @@ ENVELOPE = {
     "flicker": {"depth": 0.05, "period_frames": (10, 1000)},
     "crosstalk": {"fraction": 0.05},
     "nonlinearity": {"gamma_offset": 0.1},
+    "dead_pixels": {"count": 5},
 }
 # The entry of ENVELOPE that is each effect's size (None: an on/off effect, size 1).
 SIZE_KEY = {"gain_nonuniformity": "sigma", "column_pattern": "sigma", "dark_current": "rate", "hot_pixels": "count",
             "shot_noise": "electrons", "reset_to_zero": None, "refractory": "frames", "flicker": "depth",
-            "crosstalk": "fraction", "nonlinearity": "gamma_offset"}
+            "crosstalk": "fraction", "nonlinearity": "gamma_offset", "dead_pixels": "count"}
 
 
 def envelope_size(name: str) -> float:
@@ -46,7 +49,7 @@ def envelope_size(name: str) -> float:
 RANGES = {
     "gain_nonuniformity": {"sigma": (0.03, 0.12)},
     "column_pattern": {"sigma": (0.02, 0.08)},
-    "dark_current": {"rate": (0.002, 0.02)},
+    "dark_current": {"rate": (0.002, 0.02), "spread": (0.0, 0.6)},
     "hot_pixels": {"count": (5, 30)},
     "shot_noise": {"electrons": (20, 2000)},
     "reset_to_zero": {},
@@ -54,6 +57,7 @@ RANGES = {
     "flicker": {"period_frames": (10, 1000), "depth": (0.05, 0.4)},
     "crosstalk": {"fraction": (0.05, 0.3)},
     "nonlinearity": {"gamma": (0.6, 1.5)},
+    "dead_pixels": {"count": (5, 30)},
 }
 HOT_RATE = (0.05, 0.3)
 
@@ -76,8 +80,12 @@ def draw_parameters(name: str, rng: np.random.Generator) -> dict:
         return {}
     if name == "refractory":
         return {"frames": int(rng.integers(1, 5))}
-    if name == "hot_pixels":
+    if name in ("hot_pixels", "dead_pixels"):
         return {"count": int(rng.integers(5, 31))}
+    if name == "dark_current":  # the median log-uniform, its log-SD uniform
+        lo, hi = RANGES[name]["rate"]
+        return {"rate": float(math.exp(rng.uniform(math.log(lo), math.log(hi)))),
+                "spread": float(rng.uniform(*RANGES[name]["spread"]))}
     if name == "nonlinearity":
         off = rng.uniform(0.1, 0.45)
         return {"gamma": float(1 + off if rng.random() < 0.5 else 1 - off)}
@@ -100,6 +108,16 @@ def _standard(z: np.ndarray) -> np.ndarray:
     return (z - z.mean()) / z.std()
 
 
+def _dark_map(params: dict, height: int, width: int, rng: np.random.Generator) -> np.ndarray:
+    """``[H, W]`` dark rate of median ``rate`` whose logarithm has SD ``spread`` over the pixels
+    (no draw when the spread is 0 or absent)."""
+    spread = float(params.get("spread", 0.0))
+    if spread <= 0:
+        return np.full((height, width), params["rate"])
+    z = _standard(rng.standard_normal((height, width)))
+    return params["rate"] * np.exp(spread * (z - np.median(z)))
+
+
 def make_sensor(effects: dict, height: int, width: int, rng: np.random.Generator) -> Sensor:
     """A sensor with the given effects (``{name: parameters}``) at ``height x width``."""
     R = np.ones((height, width))
@@ -110,10 +128,14 @@ def make_sensor(effects: dict, height: int, width: int, rng: np.random.Generator
     if "column_pattern" in effects:
         R *= (1.0 + effects["column_pattern"]["sigma"] * _standard(rng.standard_normal(width)))[None, :]
     if "dark_current" in effects:
-        d += effects["dark_current"]["rate"]
+        d += _dark_map(effects["dark_current"], height, width, rng)
     if "hot_pixels" in effects:
         idx = rng.choice(height * width, size=effects["hot_pixels"]["count"], replace=False)
         d.reshape(-1)[idx] += rng.uniform(*HOT_RATE, size=idx.size)
+    if "dead_pixels" in effects:
+        idx = rng.choice(height * width, size=effects["dead_pixels"]["count"], replace=False)
+        R.reshape(-1)[idx] = 0.0
+        d.reshape(-1)[idx] = 0.0
     kw = {"responsivity": R if not np.all(R == 1) else None, "dark_rate": d if d.any() else None}
     if "shot_noise" in effects:
         kw["electrons"] = effects["shot_noise"]["electrons"]

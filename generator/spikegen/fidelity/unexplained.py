@@ -1,0 +1,118 @@
+"""Statistics of the held-out frames that the fitted model does not reproduce ("unexplained").
+
+Each check compares the measured held-out frames with the fitted sensor's simulation of the
+same frames, over the pixels of the mask (the static ones without a reference), against the
+counting noise the model predicts (heldout.count_variance; a difference of two streams has
+twice it). A statistic is listed when its discrepancy is both significant (``z`` above
+:data:`Z_MIN`) and large (above its ``size`` gate). The catalogue's effects are named by
+effects.py; these checks name statistics, never effects.
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from . import heldout, stats
+
+Z_MIN = 5.0
+CHECKS = {
+    "rate_per_pixel": "pixels whose held-out count is more than 5 predicted SDs off (fraction; gate 0.1 %, 3 pixels)",
+    "rate_per_row": "RMS relative error of row mean rates (gate 1 %)",
+    "rate_per_column": "RMS relative error of column mean rates (gate 1 %)",
+    "rate_per_frame": "RMS relative error of the population count in windows of 4 frames (gate 1 %)",
+    "count_dispersion": "relative excess of per-pixel count variance in windows of 16 frames (gate 25 %)",
+    "serial_correlation": "difference of the mean lag-1 correlation of consecutive intervals (gate 0.1)",
+    "isi_distribution": "total-variation distance of the pooled interval histograms (gate 0.1)",
+}
+
+
+def _entry(name: str, value: float, z: float, gate: float) -> dict:
+    return {"statistic": name, "value": float(value), "z": float(z), "gate": gate, "meaning": CHECKS[name]}
+
+
+def _rate_checks(c, s, var, mask, H, W) -> list:
+    """Per-pixel, per-row and per-column checks on whole held-out counts ``c, s, var [P]``."""
+    z = (c - s) / np.sqrt(var)
+    out = np.abs(z[mask]) > 5.0
+    frac = float(out.mean()) if mask.any() else 0.0
+    found = [_entry("rate_per_pixel", frac, float(out.sum()), 0.001)] if out.sum() >= 3 and frac >= 0.001 else []
+    for name, axis in (("rate_per_row", 1), ("rate_per_column", 0)):
+        m2 = mask.reshape(H, W)
+        d = np.where(m2, (c - s).reshape(H, W), 0.0).sum(axis=axis)
+        v = np.where(m2, var.reshape(H, W), 0.0).sum(axis=axis)
+        tot = np.where(m2, s.reshape(H, W), 0.0).sum(axis=axis)
+        ok = (tot > 20) & (v > 0)
+        if ok.sum() < 4:
+            continue
+        chi = (d[ok] - d[ok].sum() * tot[ok] / tot[ok].sum()) ** 2 / v[ok]  # a common scale error is per pixel
+        excess = (chi.sum() - ok.sum()) / math.sqrt(2 * ok.sum())
+        rel = stats._rms(d[ok] / tot[ok] - d[ok].sum() / tot[ok].sum())
+        if excess > Z_MIN and rel > 0.01:
+            found.append(_entry(name, rel, excess, 0.01))
+    return found
+
+
+def _frame_check(meas, sim, sim_full, mask) -> list:
+    """Population count in windows of 4 frames, its deviation beyond the pixels' own noise."""
+    w = 4
+    c, s = heldout.window_counts(meas, w)[:, mask], heldout.window_counts(sim, w)[:, mask]
+    if c.shape[0] < 8 or c.shape[1] == 0:
+        return []
+    var = 2.0 * heldout.count_variance(sim_full, w, True)[mask].sum()
+    d = c.sum(axis=1) - s.sum(axis=1)
+    d = d - d.mean()
+    n = d.size
+    excess = (float((d * d).sum() / var) - (n - 1)) / math.sqrt(2 * (n - 1))
+    rel = stats._rms(d) / max(float(s.sum(axis=1).mean()), 1e-12)
+    return [_entry("rate_per_frame", rel, excess, 0.01)] if excess > Z_MIN and rel > 0.01 else []
+
+
+def _dispersion_check(meas, sim, mask) -> list:
+    """Variance of each pixel's counts in windows of 16 frames, measured against simulated."""
+    w = 16
+    c, s = heldout.window_counts(meas, w)[:, mask], heldout.window_counts(sim, w)[:, mask]
+    if c.shape[0] < 4 or c.shape[1] < 20:
+        return []
+    d = c.var(axis=0, ddof=1) - s.var(axis=0, ddof=1)
+    base = float(s.var(axis=0, ddof=1).mean()) + 1.0 / 6.0
+    z = float(d.mean() / max(d.std() / math.sqrt(d.size), 1e-12))
+    rel = float(d.mean()) / base
+    return [_entry("count_dispersion", rel, z, 0.25)] if z > Z_MIN and rel > 0.25 else []
+
+
+def _interval_checks(meas, sim, mask) -> list:
+    """Serial correlation of consecutive intervals and the pooled interval histogram."""
+    pm, ps = stats.pixel_stats(meas), stats.pixel_stats(sim)
+    found = []
+    rm, rs = (stats.serial_correlation(x)[mask & (p.isi_var >= 2.0) & (p.n_isi >= 8)] for x, p in
+              ((meas, pm), (sim, ps)))
+    rm, rs = rm[np.isfinite(rm)], rs[np.isfinite(rs)]
+    if rm.size >= 20 and rs.size >= 20:
+        diff = float(rm.mean() - rs.mean())
+        z = abs(diff) / math.sqrt(rm.var() / rm.size + rs.var() / rs.size + 1e-18)
+        if z > Z_MIN and abs(diff) > 0.1:
+            found.append(_entry("serial_correlation", diff, z, 0.1))
+    keep = np.flatnonzero(mask)
+    a, b = (p.isi_values[np.isin(stats.interval_pixels(x), keep)] for x, p in ((meas, pm), (sim, ps)))
+    if a.size >= 100 and b.size >= 100:
+        tv = stats._isi_tv(a, b, meas.shape[0])
+        if tv > 0.1:
+            found.append(_entry("isi_distribution", tv, math.inf, 0.1))
+    return found
+
+
+def unexplained(meas: np.ndarray, sim_full: np.ndarray, mask: np.ndarray, static_reference: bool) -> list:
+    """The statistics of ``meas [Th, H, W]`` (the held-out frames) that ``sim_full [T, H, W]``
+    (the fitted model's whole run, whose last ``Th`` frames are the same) does not reproduce,
+    as JSON entries."""
+    Th, H, W = meas.shape
+    sim = sim_full[sim_full.shape[0] - Th:]
+    c = meas.reshape(Th, -1).sum(axis=0, dtype=np.int64).astype(np.float64)
+    s = sim.reshape(Th, -1).sum(axis=0, dtype=np.int64).astype(np.float64)
+    var = 2.0 * heldout.count_variance(sim_full, Th, static_reference)
+    found = _rate_checks(c, s, var, mask, H, W)
+    found += _frame_check(meas, sim, sim_full, mask)
+    found += _dispersion_check(meas, sim, mask)
+    found += _interval_checks(meas, sim, mask)
+    return found
