@@ -6,7 +6,8 @@
 Trains ``spikenerf train DATASET --iters N --out <work>/NAME [TRAIN OPTIONS]``, evaluates it on the
 dataset's held-out views (``spikenerf eval``) and appends one line to
 ``bench/results/settings.jsonl``: the name, the options, the dataset, iterations, training and
-evaluation seconds, the load average before and after, the code version (``git describe --dirty``)
+evaluation seconds, the load average before and after, the code version (the short commit,
+``+changes`` when tracked files differ from it)
 and the metrics (full image, object alpha > 0 and > 0.5, background; PSNR and SSIM). The dataset
 is meant to be one of the project's own procedural scenes (``spikegen render``, moving camera), so
 that no setting is chosen on the real lego's views (bench/PROTOCOL.md). Speed figures are only
@@ -22,14 +23,11 @@ import sys
 import time
 from pathlib import Path
 
+from bench_protocol import _commit  # the short commit, "+changes" when tracked files differ from it
+
 REPO = Path(__file__).resolve().parents[1]
 RESULTS = REPO / "bench" / "results" / "settings.jsonl"
 METRICS = ("psnr", "psnr_object", "psnr_object50", "psnr_background", "ssim", "ssim_object")
-
-
-def _version() -> str:
-    res = subprocess.run(["git", "describe", "--always", "--dirty"], cwd=REPO, capture_output=True, text=True)
-    return res.stdout.strip() or "unknown"
 
 
 def run(dataset: Path, name: str, iters: int, options: list[str], work: Path) -> dict:
@@ -44,7 +42,7 @@ def run(dataset: Path, name: str, iters: int, options: list[str], work: Path) ->
     m = json.loads((out / "metrics.json").read_text())
     return {"name": name, "options": options, "dataset": str(dataset), "iterations": iters,
             "train_s": round(t1 - t0, 1), "eval_s": round(t2 - t1, 1), "views": m["views"],
-            "load": [round(load0, 2), round(os.getloadavg()[0], 2)], "version": _version(),
+            "load": [round(load0, 2), round(os.getloadavg()[0], 2)], "version": _commit(),
             "metrics": {k: m[k] for k in METRICS}}
 
 

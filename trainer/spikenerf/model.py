@@ -290,14 +290,10 @@ class GridField(nn.Module):
         unit = self.unit(pts[pick])
         total = 0.0
         for g in self.grids():
-            X, Y, Z = g.shape[2:]
-            top = unit.new_tensor([X - 1, Y - 1, Z - 1])
-            base = torch.minimum(((unit + 1) * (0.5 * top)).floor().clamp_(min=0), top - 1).long()
-            stride = torch.tensor([Y * Z, Z, 1], device=unit.device)
-            flat = (base * stride).sum(-1)
+            idx = corners(unit, g.shape[2:])[0]  # corner 0 is the lowest; 4, 2, 1 its next along x, y, z
             values = g.view(g.shape[1], -1)
-            v0 = values.index_select(1, flat)
-            total = total + sum((values.index_select(1, flat + int(s)) - v0).square().mean() for s in stride)
+            v0 = values.index_select(1, idx[:, 0])
+            total = total + sum((values.index_select(1, idx[:, k]) - v0).square().mean() for k in (4, 2, 1))
         return total
 
 
