@@ -1,0 +1,44 @@
+"""bench/make_protocol.py: PROTOCOL.md is what the script makes of the committed results, and its
+targets table computes the margins the issue asks for."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+sys.path.insert(0, str(BENCH))
+make_protocol = pytest.importorskip("make_protocol")
+
+
+def test_protocol_page_is_generated_from_the_results(tmp_path, monkeypatch):
+    monkeypatch.setattr(make_protocol, "OUT", tmp_path / "PROTOCOL.md")
+    make_protocol.main()
+    assert (tmp_path / "PROTOCOL.md").read_text() == (BENCH / "PROTOCOL.md").read_text(), \
+        "bench/PROTOCOL.md is stale: run python bench/make_protocol.py"
+
+
+def _row(method, knowledge, obj, seed=0, intensity=64):
+    return {"resolution": 400, "data": "lego", "sensor": "rsir", "intensity": intensity, "method": method,
+            "knowledge": knowledge, "seed": seed, "frames": 0, "metrics": {"psnr_object": obj}}
+
+
+def test_targets_margins_and_verdicts():
+    rows = [_row("spikelik", "true maps", 25.0 + 0.1 * s, seed=s) for s in range(3)]   # mean 25.1
+    rows += [_row("spikenerf-paper", "true maps", 22.0 + 0.1 * s, seed=s) for s in range(3)]  # 22.1
+    rows += [_row("tfp32", "none", 20.0), _row("tfi", "none", 25.5)]
+    rows += [_row("spikelik", "calibrated maps", 24.4)]
+    rows += [_row("oracle", "ground-truth images", 26.1)]
+    rows += [_row("spikelik", "true maps", 20.0, intensity=16)]
+    table = make_protocol.targets(rows)
+    i64 = next(line for line in table if "| i64 |" in line)
+    cells = [c.strip() for c in i64.split("|")[1:-1]]
+    assert cells[2] == "+3.00 (met)"                                   # 25.1 - 22.1, three seeds each
+    assert cells[3].startswith("-0.40 (not met; 1 of 3 seeds) vs tfi")  # the best baseline is tfi
+    assert "(2 of 5 baselines run)" in cells[3]
+    assert cells[4] == "-0.70 (not met; 1 of 3 seeds)"                 # calibrated 24.4 vs true 25.1
+    assert cells[5] == "+4.00"                                         # oracle 26.1 over the port 22.1
+    i16 = next(line for line in table if "| i16 |" in line)
+    assert [c.strip() for c in i16.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]
+    assert not any("| i32 |" in line for line in table)                # no default run: no line
