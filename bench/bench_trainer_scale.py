@@ -36,15 +36,13 @@ from pathlib import Path
 
 def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool) -> dict:
     """Train and evaluate one run in this process; the figures as a dict."""
-    from spikenerf import train as train_module
     from spikenerf.config import TrainConfig
     from spikenerf.eval import evaluate
     from spikenerf.train import train
 
-    if sparse:  # the lazy optimiser for grids above 128^3 (the 400 x 400 run's final grid)
-        train_module.SPARSE_ABOVE_VOXELS = 128 ** 3
-
-    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device="cpu")
+    # --sparse: the lazy optimiser for grids above 128^3 (the 400 x 400 run's final grid)
+    lazy = {"lazy_above": 128 ** 3} if sparse else {}
+    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device="cpu", **lazy)
     t0 = time.perf_counter()
     ck = train(cfg, out, progress=False, log=lambda m: None)
     t_train = time.perf_counter() - t0

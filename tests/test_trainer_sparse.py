@@ -132,8 +132,10 @@ def test_optimizer_state_round_trips_exactly_and_stays_compact():
     other = LazyGridAdam(f, lr_grid=0.1, lr_mlp=1e-3)
     other.load_state_dict(state)
     assert other.step_count == 3
-    for a, b in zip(lazy.exp_avg + lazy.exp_avg_sq, other.exp_avg + other.exp_avg_sq):
+    for a, b in zip(lazy.exp_avg + lazy.exp_avg_sq + lazy.last, other.exp_avg + other.exp_avg_sq + other.last):
         assert torch.equal(a, b)
+    assert other.w_base == lazy.w_base and (other.w == lazy.w).all() and lazy.w.size == 4
+    assert int(lazy.last[0].max()) == 3  # the step each voxel was last updated at
 
 
 def test_dense_adam_state_is_refused_with_one_line():
@@ -159,9 +161,8 @@ def test_dense_adam_by_default():
     assert isinstance(make_optimizer(f, TrainConfig(dataset="unused")), torch.optim.Adam) and not f.sparse
 
 
-def test_only_grids_above_the_limit_train_sparsely_and_a_grow_keeps_the_mlp_state(monkeypatch):
-    monkeypatch.setattr(train_module, "SPARSE_ABOVE_VOXELS", 128 ** 3)
-    cfg = TrainConfig(dataset="unused", iters=10)
+def test_only_grids_above_the_limit_train_sparsely_and_a_grow_keeps_the_mlp_state():
+    cfg = TrainConfig(dataset="unused", iters=10, lazy_above=128 ** 3)
     small = GridField(grid_size=128, final_size=129, features=2)
     dense = make_optimizer(small, cfg)
     assert isinstance(dense, torch.optim.Adam) and not small.sparse
@@ -211,12 +212,11 @@ def test_checkpoint_packs_the_occupancy_and_restores_it(tmp_path):
     assert torch.equal(g.occupancy, f.occupancy) and torch.equal(g.grid, f.grid) and torch.equal(g.box, f.box)
 
 
-def test_sparse_run_resumes_bit_for_bit(dataset, tmp_path, monkeypatch):
+def test_sparse_run_resumes_bit_for_bit(dataset, tmp_path):
     """With every grid trained sparsely, a run interrupted mid-way (after the last grow, so the
     lazy optimiser's compact state is what the checkpoint carries) ends equal to an uninterrupted one."""
-    monkeypatch.setattr(train_module, "SPARSE_ABOVE_VOXELS", 0)
     a, b = tmp_path / "a", tmp_path / "b"
-    cfg = _cfg(dataset, iters=50)
+    cfg = _cfg(dataset, iters=50, lazy_above=1)
     train_module.train(cfg, a, progress=False, log=lambda m: None)
     train_module.train(cfg, b, progress=False, log=lambda m: None, stop_at=35)
     mid = torch.load(b / "checkpoint.pt", weights_only=False)
@@ -239,3 +239,45 @@ def test_sparse_reads_match_grid_sample_on_a_cropped_box():
     f.sparse = True
     sparse = f.query(pts, dirs)
     assert all(torch.allclose(a, b, atol=1e-5) for a, b in zip(dense, sparse))
+
+
+def test_lazy_adam_catches_a_voxel_up_on_the_steps_it_was_not_read():
+    """Voxels read only now and then, with a decaying learning rate: when read, a voxel's parameter
+    and moments are the dense Adam's (which moved it on its momentum while it was not read)."""
+    f, ref = _field(size=10), _field(size=10)
+    lazy = LazyGridAdam(f, lr_grid=0.05, lr_mlp=1e-3, betas=(0.9, 0.99))
+    dense = torch.optim.Adam(ref.grids(), lr=0.05, betas=(0.9, 0.99))
+    f.sparse = True
+    gen = torch.Generator().manual_seed(8)
+    for step in range(1, 61):
+        lr = 0.05 * 0.1 ** (step / 60)
+        lazy.param_groups[0]["lr"] = lr
+        for g in dense.param_groups:
+            g["lr"] = lr
+        for i, (p, q) in enumerate(zip(f.grids(), ref.grids())):
+            # the first 5 steps read everything; then each voxel is read with probability 0.15 (never
+            # for the last tenth of the voxels), and at step 60 everything is read again
+            C, n_vox = p.shape[1], p[0, 0].numel()
+            if step <= 5 or step == 60:
+                mask = torch.ones(n_vox, dtype=torch.bool)
+            else:
+                mask = torch.rand(n_vox, generator=gen) < 0.15
+                mask[-n_vox // 10:] = False
+            idx = mask.nonzero()[:, 0]
+            grad = torch.randn(C, idx.numel(), generator=gen)
+            vals = p.detach().view(C, -1)[:, idx].clone().requires_grad_(True)
+            vals.grad = grad
+            f.tape.append((p, idx, vals))
+            dense_grad = torch.zeros(C, n_vox)
+            dense_grad[:, idx] = grad
+            q.grad = dense_grad.view_as(q)
+        lazy.step()
+        dense.step()
+    for i, (p, q) in enumerate(zip(f.grids(), ref.grids())):
+        C = p.shape[1]
+        got, want = p.detach().view(C, -1), q.detach().view(C, -1)
+        assert torch.allclose(got, want, rtol=1e-4, atol=1e-5), (got - want).abs().max()
+        assert torch.allclose(lazy.exp_avg[i], dense.state[q]["exp_avg"].view(C, -1), rtol=1e-4, atol=1e-6)
+        assert torch.allclose(lazy.exp_avg_sq[i], dense.state[q]["exp_avg_sq"].view(C, -1), rtol=1e-4, atol=1e-8)
+    # without the catch-up the voxels skipped for 54 steps would be far off
+    assert lazy.w.size > 1 and float(lazy.w.max()) > 0

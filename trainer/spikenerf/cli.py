@@ -62,13 +62,16 @@ def main():
               help="Weight of the total-variation (smoothness) prior on the grids.")
 @click.option("--tv-points", default=TrainConfig.tv_points, show_default=True, type=click.IntRange(min=0),
               help="Put the prior at the voxels of this many of each step's sample points (0 = a random block).")
+@click.option("--lazy-above", default=TrainConfig.lazy_above, show_default=True, type=click.IntRange(min=0),
+              metavar="VOXELS", help="Grids with more voxels than this train with the lazy Adam, which updates only "
+                                     "the voxels a step read (0 = never).")
 @click.option("--checkpoint-every", default=TrainConfig.checkpoint_every, show_default=True,
               type=click.IntRange(min=1),
               help=f"Save a checkpoint every N iterations (and at least every {TrainConfig.checkpoint_every_s:g} s).")
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, seed, batch_rays, sh_degree,
-          grid_final, fit_box, tv_weight, tv_points, checkpoint_every, do_eval, quiet):
+          grid_final, fit_box, tv_weight, tv_points, lazy_above, checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
 
@@ -77,7 +80,7 @@ def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, 
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
                       frames=frames, seed=seed, batch_rays=batch_rays, sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, tv_weight=tv_weight, tv_points=tv_points,
-                      checkpoint_every=checkpoint_every, sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
+                      lazy_above=lazy_above, checkpoint_every=checkpoint_every, sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
                       else "")
     ck = run_train(cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True))
     click.echo(f"checkpoint: {ck}")

@@ -14,7 +14,7 @@ upsampled during training (coarse to fine) and may be cropped to the box the obj
 (:meth:`GridField.crop`, DVGO's fitted bounding box: the voxels then follow the object, not the
 cube); an occupancy mask of the grid lets the renderer skip empty space. The constructor arguments are stored in checkpoints (:meth:`config`).
 
-With the opt-in lazy optimiser (``train.SPARSE_ABOVE_VOXELS``) the trainer switches a field to
+With the opt-in lazy optimiser (``--lazy-above``, ``TrainConfig.lazy_above``) the trainer switches a field to
 sparse mode (``sparse = True``): points are then sampled by
 gathering their 8 corner voxels (:func:`corners`) instead of ``grid_sample``, and the voxels
 read with gradients enabled are recorded on ``tape`` for the lazy optimiser (optim.py), so

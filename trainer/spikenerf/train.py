@@ -62,16 +62,11 @@ def make_field(cfg: TrainConfig, width: int) -> GridField:
                      sh_scale=cfg.sh_scale)
 
 
-# Grids with more voxels than this train sparsely (lazy Adam); None: never (the default, because
-# the lazy optimiser measured 0.5 dB lower at 400 x 400: docs/trainer.md, "Speed at 400 x 400").
-SPARSE_ABOVE_VOXELS: int | None = None
-
-
 def make_optimizer(field: GridField, cfg: TrainConfig):
-    """Above ``SPARSE_ABOVE_VOXELS`` voxels: lazy Adam over the grids (only the voxels a step read
-    are updated; optim.py), the field in sparse mode so that it records those reads. Otherwise
-    PyTorch's fused dense Adam."""
-    field.sparse = SPARSE_ABOVE_VOXELS is not None and field.grid[0, 0].numel() > SPARSE_ABOVE_VOXELS
+    """Above ``cfg.lazy_above`` voxels (when set): lazy Adam over the grids (only the voxels a step
+    read are updated, caught up on the steps they missed; optim.py), the field in sparse mode so
+    that it records those reads. Otherwise PyTorch's fused dense Adam."""
+    field.sparse = cfg.lazy_above > 0 and field.grid[0, 0].numel() > cfg.lazy_above
     if field.sparse:
         return LazyGridAdam(field, cfg.lr_grid, cfg.lr_mlp, betas=(0.9, 0.99))
     return torch.optim.Adam([{"params": field.grids(), "lr": cfg.lr_grid},
@@ -188,10 +183,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> No
     # checkpoints from before SH was added have no SH keys: they are degree 0 (the scale is then moot);
     # those from before --frames used every frame of the stream
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
-           "fit_box": False, **ck["config"]}
+           "fit_box": False, "lazy_above": 0, **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale", "frames", "sensor_maps", "fit_box"):
+                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
