@@ -175,7 +175,8 @@ def _held_score(ctx: Context, sensor: Sensor):
     sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED)
     sim_stats = stats.pixel_stats(sim)
     held = slice(ctx.Tf, ctx.frames)
-    return heldout.score(ctx.spikes[held], sim, sim_stats, ctx.static, ctx.X.shape[0] == 1), sim
+    modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, ctx.frames)
+    return heldout.score(ctx.spikes[held], sim, sim_stats, ctx.static, ctx.X.shape[0] == 1, modulation), sim
 
 
 def _check_stream(spikes, intensity) -> np.ndarray:
