@@ -438,3 +438,24 @@ def test_equivalent_interval_under_flicker():
     saturated = np.array([delta + 0.5])  # shorter than any mean interval the readout can give
     assert equivalent_isi(saturated, delta, table)[0] == saturated[0]
     assert equivalent_isi(measured, 0.5, None) is measured
+
+
+def test_shared_variance_is_in_every_quadrant_or_none():
+    """stats.shared_variance: pixels that fire independently share nothing; light that changes
+    for all pixels is shared; the same change over one quadrant only is not (a moving object)."""
+    from spikegen.fidelity.stats import shared_variance
+    from spikegen.sensor import simulate
+
+    rng = np.random.default_rng(21)
+    x = synth.test_radiance(64, 64, rng)
+    steps = 1.0 + 0.1 * rng.standard_normal(100)
+    mask = np.ones(64 * 64, dtype=bool)
+    quadrant = (np.arange(64)[:, None] < 32) & (np.arange(64)[None, :] < 32)
+    results = {}
+    for name, frames in (("none", x[None]), ("all", steps[:, None, None] * x[None]),
+                         ("one quadrant", np.where(quadrant, steps[:, None, None] * x[None], x[None]))):
+        spikes = simulate(frames, 128.0, synth.make_sensor({"shot_noise": {"electrons": 300.0}}, 64, 64, rng),
+                          frames=400, seed=5)
+        v, se = shared_variance(spikes, mask)
+        results[name] = v / se
+    assert abs(results["none"]) < 5 and results["all"] > 5 and results["one quadrant"] < 5, results

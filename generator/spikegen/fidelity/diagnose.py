@@ -61,7 +61,7 @@ from .structure import pixel_structure
 from .synth import EFFECTS
 from .unexplained import unexplained
 
-__all__ = ["FIT_FRACTION", "SIM_SEED", "GATES", "ENVELOPE_SIZE", "Diagnosis", "Effect", "diagnose"]
+__all__ = ["FIT_FRACTION", "SIM_SEED", "GATES", "ENVELOPE_SIZE", "Diagnosis", "Effect", "diagnose", "score_sensor"]
 
 FIT_FRACTION = 0.8
 
@@ -126,6 +126,18 @@ def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | 
             "baseline_sensor": baseline.name, "static_pixels": n_static, "moving_pixels": H * W - n_static}
     return Diagnosis(effects, extended, bm, em, fit=fit, info=info, heldout=held["doc"],
                      unexplained=held["unexplained"], static=ctx.static.reshape(H, W))
+
+
+def score_sensor(spikes: np.ndarray, radiance, intensity: float, sensor: Sensor, baseline: Sensor | None = None,
+                 fit_fraction: float = FIT_FRACTION) -> heldout.HeldOutScore:
+    """The held-out score (the JSON's ``"heldout"`` measure, heldout.score) of a given ``sensor``
+    on this recording: the same fit window, reference (``"self"``: from the fit window's rates
+    through ``baseline``), static pixels and simulation seed as :func:`diagnose`."""
+    spikes = _check_stream(spikes, intensity)
+    T, H, W = spikes.shape
+    baseline = (baseline or Sensor(name="ideal")).sized(H, W)
+    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)))
+    return _held_score(ctx, sensor.sized(H, W))[0]
 
 
 def _choose(ctx: Context, fit: Fit) -> tuple[list, Sensor, dict]:
