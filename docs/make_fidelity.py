@@ -642,8 +642,8 @@ Known limits: `reset_to_zero` combined with shot noise of ~10^3 electrons confus
 the shot-noise estimate is ~20 % low; with `--reference self`, fine scene texture is counted as
 hot-pixel candidates; only the seeds in the tests and this page were checked.
 
-Known limits of the held-out choice, measured by `tests/test_diagnose.py` (2026-11-23; the strict
-xfails fail when fixed):
+Known limits of the held-out choice, measured by `tests/test_diagnose.py` (2026-11-23, before the
+third round below):
 
 - `test_sweep_random_pairs`: 19/20 pairs with both effects found and both parameters within 20 %.
   The miss, pair 0: a reset to zero under flicker of depth 0.37 and period 648 frames at I = 62.
@@ -665,7 +665,11 @@ xfails fail when fixed):
   all pixels, was named shot noise; an ideal sensor's moving scene with `--reference self` was
   named shot noise.
 
-Third round (the three strict xfails; the sweep figures above were measured before it):
+Third round (the three strict xfails). After it `tests/test_diagnose.py` passes whole (2026-11-23):
+`test_sweep_random_pairs` is still 19/20 with the same miss (pair 0 above), and section 7's random
+pairs are 15/16: the flicker of depth 0.065 beside 26 dead pixels is now kept (the held-out score
+sees a model's flicker on its own clock); the spread dark current + 2-frame dead time at I = 35
+remains the miss.
 
 - Flicker + shot noise of ~10^3 electrons (I = 214): the held-out score compared each held-out
   interval with the pixel's simulated intervals of the whole run, whose variance held the slow
