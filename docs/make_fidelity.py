@@ -243,7 +243,8 @@ def study_joint(real, md, results):
     md += ["## One temporal-noise parameter for both recordings?", "",
            "Held-out score (the measure of the table above, `spikegen.fidelity.diagnose.score_sensor`, `self`, "
            "I = 256) of each recording under the ideal sensor plus shot noise of N_e photo-electrons per threshold "
-           f"(inf: none). Shared N_e: the one of the grid below with the largest sum of the two scores ({_ne(shared)}).", "",
+           "(inf: none). Shared N_e: the one of the grid below with the largest sum of the two scores "
+           f"({_ne(shared)}).", "",
            table(rows, ["recording", "own fit N_e", "score, own N_e", "score, the other's N_e",
                         f"score, shared N_e = {_ne(shared)}", "best N_e of the grid (score)"]), "",
            table(grid_rows, ["N_e", *[f"{label} score" for label in data], "sum"]), ""]
@@ -274,8 +275,8 @@ def _rate_dependence(data, electrons, bins=5):
     for label, s in data.items():
         T = s.shape[0]
         x = np.minimum(s.mean(0), 1.0)
-        streams = {"measured": s, f"shot noise N_e = {_ne(electrons)}": simulate(x, 256.0, Sensor(electrons=0.0 if math.isinf(electrons) else electrons),
-                                                                                   frames=T, seed=SEED)}
+        noisy_sensor = Sensor(electrons=0.0 if math.isinf(electrons) else electrons)
+        streams = {"measured": s, f"shot noise N_e = {_ne(electrons)}": simulate(x, 256.0, noisy_sensor, frames=T, seed=SEED)}
         ideal = stats.pixel_stats(simulate(x, 256.0, Sensor(), frames=T, seed=SEED))
         pm = stats.pixel_stats(s)
         ok = static_pixels(s) & (pm.n_isi >= 8)
