@@ -276,7 +276,8 @@ def _rate_dependence(data, electrons, bins=5):
         T = s.shape[0]
         x = np.minimum(s.mean(0), 1.0)
         noisy_sensor = Sensor(electrons=0.0 if math.isinf(electrons) else electrons)
-        streams = {"measured": s, f"shot noise N_e = {_ne(electrons)}": simulate(x, 256.0, noisy_sensor, frames=T, seed=SEED)}
+        streams = {"measured": s,
+                   f"shot noise N_e = {_ne(electrons)}": simulate(x, 256.0, noisy_sensor, frames=T, seed=SEED)}
         ideal = stats.pixel_stats(simulate(x, 256.0, Sensor(), frames=T, seed=SEED))
         pm = stats.pixel_stats(s)
         ok = static_pixels(s) & (pm.n_isi >= 8)
