@@ -52,11 +52,10 @@ PAIRS = [("gain_nonuniformity", "shot_noise"), ("column_pattern", "dark_current"
          ("flicker", "shot_noise")]
 
 
-# Known regression of the held-out choice (strict xfail: it must fail until fixed; see
-# docs/fidelity.md): shot noise of ~1000 electrons under flicker lowers the held-out score and is dropped.
-_KNOWN = {("flicker", "shot_noise"): "held-out score does not support N_e ~ 1000 shot noise under flicker"}
-_PAIR_PARAMS = [pytest.param(p, id="+".join(p), marks=[pytest.mark.xfail(strict=True, reason=_KNOWN[p])]
-                             if p in _KNOWN else []) for p in PAIRS]
+# ("flicker", "shot_noise") was a strict xfail: the held-out score measured intervals and
+# window counts against the whole run, so the flicker's slow modulation counted as variance and
+# shot noise of ~1000 electrons lowered the score (docs/fidelity.md).
+_PAIR_PARAMS = [pytest.param(p, id="+".join(p)) for p in PAIRS]
 
 
 @pytest.mark.parametrize("pair", _PAIR_PARAMS)
@@ -347,21 +346,14 @@ def _frame_flutter(sensor, x, rng):
     return sensor, steps[:, None, None] * x[None]
 
 
-_FLUTTER_XFAIL = pytest.mark.xfail(strict=True, reason="known: common-mode temporal noise is still named shot "
-                                   "noise (no check that the excess interval variance is shared by all pixels)")
-
-
 @pytest.mark.parametrize("extra,statistic", [pytest.param(_row_pattern, "rate_per_row", id="row_pattern"),
-                                             pytest.param(_frame_flutter, "rate_per_frame", id="frame_flutter",
-                                                          marks=_FLUTTER_XFAIL)])
+                                             pytest.param(_frame_flutter, "rate_per_frame", id="frame_flutter")])
 def test_effect_outside_the_catalogue_is_unexplained_not_misnamed(extra, statistic):
     result = _diagnose_sensor({}, seed=13, extra=extra)
     assert result.detected == [], result.detected
     assert statistic in [u["statistic"] for u in result.unexplained], result.unexplained
 
 
-@pytest.mark.xfail(strict=True, reason="known: shot noise is still named on an ideal sensor's moving scene "
-                   "with 'self' (the static mask is right; the verdict is not)")
 def test_self_reference_on_a_moving_scene_judges_the_static_part():
     from spikegen.sensor import simulate
 
@@ -446,3 +438,24 @@ def test_equivalent_interval_under_flicker():
     saturated = np.array([delta + 0.5])  # shorter than any mean interval the readout can give
     assert equivalent_isi(saturated, delta, table)[0] == saturated[0]
     assert equivalent_isi(measured, 0.5, None) is measured
+
+
+def test_shared_variance_is_in_every_quadrant_or_none():
+    """stats.shared_variance: pixels that fire independently share nothing; light that changes
+    for all pixels is shared; the same change over one quadrant only is not (a moving object)."""
+    from spikegen.fidelity.stats import shared_variance
+    from spikegen.sensor import simulate
+
+    rng = np.random.default_rng(21)
+    x = synth.test_radiance(64, 64, rng)
+    steps = 1.0 + 0.1 * rng.standard_normal(100)
+    mask = np.ones(64 * 64, dtype=bool)
+    quadrant = (np.arange(64)[:, None] < 32) & (np.arange(64)[None, :] < 32)
+    results = {}
+    for name, frames in (("none", x[None]), ("all", steps[:, None, None] * x[None]),
+                         ("one quadrant", np.where(quadrant, steps[:, None, None] * x[None], x[None]))):
+        spikes = simulate(frames, 128.0, synth.make_sensor({"shot_noise": {"electrons": 300.0}}, 64, 64, rng),
+                          frames=400, seed=5)
+        v, se = shared_variance(spikes, mask)
+        results[name] = v / se
+    assert abs(results["none"]) < 5 and results["all"] > 5 and results["one quadrant"] < 5, results

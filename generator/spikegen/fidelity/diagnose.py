@@ -61,7 +61,7 @@ from .structure import pixel_structure
 from .synth import EFFECTS
 from .unexplained import unexplained
 
-__all__ = ["FIT_FRACTION", "SIM_SEED", "GATES", "ENVELOPE_SIZE", "Diagnosis", "Effect", "diagnose"]
+__all__ = ["FIT_FRACTION", "SIM_SEED", "GATES", "ENVELOPE_SIZE", "Diagnosis", "Effect", "diagnose", "score_sensor"]
 
 FIT_FRACTION = 0.8
 
@@ -128,6 +128,18 @@ def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | 
                      unexplained=held["unexplained"], static=ctx.static.reshape(H, W))
 
 
+def score_sensor(spikes: np.ndarray, radiance, intensity: float, sensor: Sensor, baseline: Sensor | None = None,
+                 fit_fraction: float = FIT_FRACTION) -> heldout.HeldOutScore:
+    """The held-out score (the JSON's ``"heldout"`` measure, heldout.score) of a given ``sensor``
+    on this recording: the same fit window, reference (``"self"``: from the fit window's rates
+    through ``baseline``), static pixels and simulation seed as :func:`diagnose`."""
+    spikes = _check_stream(spikes, intensity)
+    T, H, W = spikes.shape
+    baseline = (baseline or Sensor(name="ideal")).sized(H, W)
+    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)))
+    return _held_score(ctx, sensor.sized(H, W))[0]
+
+
 def _choose(ctx: Context, fit: Fit) -> tuple[list, Sensor, dict]:
     """The gated effects, then backward elimination by held-out score (heldout.select); returns
     the verdicts (dropped effects undetected, with a note), the extended sensor, and
@@ -175,7 +187,8 @@ def _held_score(ctx: Context, sensor: Sensor):
     sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED)
     sim_stats = stats.pixel_stats(sim)
     held = slice(ctx.Tf, ctx.frames)
-    return heldout.score(ctx.spikes[held], sim, sim_stats, ctx.static, ctx.X.shape[0] == 1), sim
+    modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, ctx.frames)
+    return heldout.score(ctx.spikes[held], sim, sim_stats, ctx.static, ctx.X.shape[0] == 1, modulation), sim
 
 
 def _check_stream(spikes, intensity) -> np.ndarray:

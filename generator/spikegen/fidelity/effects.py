@@ -22,6 +22,9 @@ SPREAD_BINS = 8  # bins of the light rate in which gain and dark spread are sepa
 JITTER_NOTE = ("interval variance 1 / (N_e lambda^2): a threshold jitter of relative SD 1 / sqrt(N_e) "
                "(threshold_jitter_equivalent) gives the same timing; reported as shot noise")
 DEAD_MIN_SPIKES = 5.0  # a pixel is tested for being dead where the model expects this many spikes
+COMMON_Z, COMMON_MIN_SD = 5.0, 0.01  # a shared modulation beyond the model's is removed above these
+COMMON_NOTE = ("a modulation shared by all pixels that the model lacks (relative SD {sd:.3g} in windows of "
+               f"{stats.COMMON_WINDOW} frames) was removed from the intervals first")
 
 
 def gated_effects(ctx: Context, fit: Fit) -> tuple[dict, float]:
@@ -334,29 +337,57 @@ def _readout_effects(ctx: Context, fit: Fit) -> tuple[Effect, Effect]:
 
 
 def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
-    """Interval variance beyond the noise-free model: ``var(ISI) = 1 / (N_e lambda^2)``."""
+    """Interval variance beyond the noise-free model: ``var(ISI) = 1 / (N_e lambda^2)``. Shot
+    noise is independent from pixel to pixel; when the measured stream has a modulation shared
+    by its pixels beyond the model's (:func:`_common_mode`), both streams' intervals are measured
+    on their own population's clock (stats.population_clock), which removes it, first."""
     sim = simulate(ctx.X, ctx.intensity, deterministic, frames=ctx.frames, seed=SIM_SEED)[:ctx.Tf]
-    ps = stats.pixel_stats(sim)
-    noisy = ctx.meas.isi_var >= 2.0  # the same estimator for both streams, pixel by pixel
-    vm, vs = stats.excess_interval_var(ctx.meas, noisy), stats.excess_interval_var(ps, noisy)
+    common = _common_mode(ctx, fit, sim)
+    meas, ps = ctx.meas, None
+    if common["removed"]:
+        mask = common["mask"]
+        meas = stats.pixel_stats(ctx.spikes[:ctx.Tf], stats.population_clock(ctx.spikes[:ctx.Tf], mask))
+        ps = stats.pixel_stats(sim, stats.population_clock(sim, mask))
+    ps = ps or stats.pixel_stats(sim)
+    noisy = meas.isi_var >= 2.0  # the same estimator for both streams, pixel by pixel
+    vm, vs = stats.excess_interval_var(meas, noisy), stats.excess_interval_var(ps, noisy)
     lam = rate_from_interval(ctx.meas.isi_mean, deterministic.refractory_frames)
     ok = np.isfinite(vm) & np.isfinite(vs) & np.isfinite(lam) & (lam > 0) & (ctx.meas.n_isi >= 8)
     ok &= ~fit.structure.hot & ctx.static
+    shared = {k: v for k, v in common.items() if k != "mask"}
     if ok.sum() < 20:
         return unavailable("shot_noise", {"electrons": None}, "too few pixels with enough intervals")
     inv, se, model_level = _inverse_electrons(vm[ok] - vs[ok], vs[ok], lam[ok], ctx.meas.n_isi[ok])
     electrons = 1.0 / inv if inv > 0 else None
     jitter = math.sqrt(inv) if inv > 0 else None
+    note = JITTER_NOTE if electrons else ""
+    if common["removed"]:
+        note = "; ".join(filter(None, [note, COMMON_NOTE.format(sd=math.sqrt(common["excess"]))]))
     eff = judge("shot_noise", electrons, inv / max(se, 1e-15),
-                {"electrons": electrons, "threshold_jitter_equivalent": jitter},
-                JITTER_NOTE if electrons else "",
-                evidence={"inverse_electrons": inv, "standard_error": se, "model_level": model_level})
+                {"electrons": electrons, "threshold_jitter_equivalent": jitter}, note,
+                evidence={"inverse_electrons": inv, "standard_error": se, "model_level": model_level,
+                          "common_mode": shared})
     # flicker (or motion) the model reproduces makes intervals vary like 1 / lambda^2 too; an
     # excess below 10 % of that deterministic variance is within the error of the fitted modulation
     if eff.detected and inv < MODEL_VARIANCE_SHARE * model_level:
         return replace(eff, detected=False,
                        note="interval variance within the error of the fitted deterministic modulation (flicker)")
     return eff
+
+
+def _common_mode(ctx: Context, fit: Fit, sim: np.ndarray) -> dict:
+    """A modulation of the light shared by all pixels that the model does not have (outside the
+    catalogue unless it is a flicker): the shared variance (stats.shared_variance) of the
+    measured fit window minus that of the model's simulation ``sim [Tf, H, W]``, over unsaturated
+    static pixels that are not hot. ``removed`` when it passes COMMON_Z standard errors and
+    COMMON_MIN_SD (relative SD in windows of stats.COMMON_WINDOW frames)."""
+    mask = (ctx.meas.rate < 0.9) & (ctx.meas.n >= 3) & ~fit.structure.hot & ctx.static
+    vm, sem = stats.shared_variance(ctx.spikes[:ctx.Tf], mask)
+    vs, ses = stats.shared_variance(sim, mask)
+    excess, se = vm - vs, math.hypot(sem, ses)
+    z = excess / se if se > 0 and math.isfinite(se) else 0.0
+    removed = bool(z >= COMMON_Z and excess >= COMMON_MIN_SD ** 2)
+    return {"excess": excess, "standard_error": se, "z": z, "removed": removed, "mask": mask}
 
 
 def _inverse_electrons(excess_var, model_var, lam, n_isi):

@@ -5,7 +5,10 @@ The score is a Gaussian log-likelihood (nats per pixel) of two things measured o
 held-out frames, under the predictive distributions a sensor's simulation gives them:
 
 1. each pixel's inter-spike intervals: mean and variance those of the simulated intervals of
-   the pixel (whole run), plus 1/12 (a frame's rounding) and the mean's sampling error;
+   the pixel (whole run), the variance with the mean's sampling error and at least
+   :data:`VAR_FLOOR` (the simulated intervals are whole frames like the measured ones, so their
+   variance already holds the rounding; adding it again would favour a model with too little
+   temporal noise);
 2. each pixel's spike counts in windows of ``w`` frames, averaged over the window lengths
    :data:`WINDOWS` that fit in the held-out part:
 
@@ -14,12 +17,23 @@ held-out frames, under the predictive distributions a sensor's simulation gives 
      spikes of held-out window ``j`` over their mean: flicker and other modulation common to
      all pixels); for a reference that changes (``K > 1``) the simulated count itself;
    * variance: that of the simulated counts of the pixel in windows of ``w`` frames over the
-     whole run (:func:`count_variance`), with ``K = 1`` times ``1 + w / T`` for the noise of
-     the simulated rate, with ``K > 1`` twice it (the mean is one draw).
+     whole run (:func:`count_variance`, at least :data:`VAR_FLOOR`), with ``K = 1`` times
+     ``1 + w / T`` for the noise of the simulated rate, with ``K > 1`` twice it (the mean is one draw).
 
 Intervals see temporal noise and the readout, counts see rates and modulation. The Gaussian
 log density is a proper scoring rule for the mean and variance it is given, so a model scores
 best in expectation when its predictive mean and variance are the true ones.
+
+A model whose light is modulated in time (the sensor's flicker, :class:`Modulation`) is scored
+on its own clock: pixel ``p`` integrates ``f_p(t) = 1 + s_p (phi(t) - 1)`` (``phi`` the flicker
+factor, ``s_p`` the light's share of the pixel's rate), so its intervals are measured in the
+time ``tau_p(t) = sum_{u <= t} f_p(u)`` (both the simulated ones that give the predictive mean
+and variance and the measured ones that are scored, plus ``log f_p`` at each interval's end: the
+change of variables, so that scores on different clocks compare), and its window counts are
+predicted as ``w rate_p`` times the window's mean ``f_p`` over the run's, their variance that of
+the simulated counts about that prediction. Otherwise the slow modulation would count as
+interval and count variance of every pixel, and a model that adds temporal noise to it would
+score worse the better it is.
 
 Model choice: starting from every effect the gates pass, the effect whose removal costs the
 least is removed while that cost is at most its penalty (:func:`penalty`: Akaike's, one nat
@@ -37,13 +51,55 @@ from . import stats
 
 WINDOWS = (4, 16, 64)  # window lengths of the scored counts, frames
 MIN_Z = 2.0  # an effect must improve the score by this many standard errors
+VAR_FLOOR = 1.0 / 12.0  # least predictive variance of an interval (frames^2) or a count (a frame's rounding)
 STATIC_DISPERSION = 30.0  # chi-square (7 d.o.f.) of 8 segment counts above which a pixel moves
+STATIC_P = 1e-4  # a static pixel's segment mean intervals disagree beyond this chance
 MEASURE = ("Gaussian log-likelihood of the held-out per-pixel intervals and spike counts (windows of "
            f"{'/'.join(map(str, WINDOWS))} frames) under each model's simulation, nats per pixel")
 # scalar parameters each effect adds to the model (the penalty, nats, of keeping it)
 PARAMETERS = {"gain_nonuniformity": 1, "column_pattern": 1, "dark_current": 2, "hot_pixels": 1, "shot_noise": 1,
               "reset_to_zero": 1, "refractory": 1, "flicker": 3, "crosstalk": 1, "nonlinearity": 1,
               "dead_pixels": 1}
+
+
+@dataclass(frozen=True, eq=False)
+class Modulation:
+    """The light modulation a model applies: ``phi [T]`` per frame (the sensor's flicker factor)
+    and ``share [P]`` the light's share of each pixel's rate (dark current is not modulated)."""
+
+    phi: np.ndarray
+    share: np.ndarray
+
+    def factor(self, t: np.ndarray, pix: np.ndarray) -> np.ndarray:
+        """``f_p(t)`` at frames ``t`` of pixels ``pix`` (same shape)."""
+        return 1.0 + self.share[pix] * (self.phi[t] - 1.0)
+
+    def clock(self, t: np.ndarray, pix: np.ndarray) -> np.ndarray:
+        """``tau_p(t) = sum_{u <= t} f_p(u)``, frames, at frames ``t`` of pixels ``pix``."""
+        cum = np.cumsum(self.phi)
+        return (t + 1.0) + self.share[pix] * (cum[t] - (t + 1.0))
+
+    def window_factor(self, w: int, start: int, n: int) -> np.ndarray:
+        """``[n, P]`` mean ``f_p`` over ``n`` consecutive windows of ``w`` frames from frame
+        ``start``, over the mean ``f_p`` of the whole run."""
+        phi_w = self.phi[start: start + n * w].reshape(n, w).mean(axis=1)
+        run = 1.0 + self.share * (float(self.phi.mean()) - 1.0)
+        return (1.0 + self.share[None, :] * (phi_w[:, None] - 1.0)) / run[None, :]
+
+
+def model_modulation(sensor, radiance: np.ndarray, intensity: float, frames: int) -> Modulation | None:
+    """The :class:`Modulation` of ``sensor`` (its flicker) seeing ``radiance [K, H, W]``; None
+    without flicker. The light share uses the mean radiance and the sensor's maps (its gamma and
+    crosstalk are left out of the share)."""
+    if sensor.flicker_depth <= 0:
+        return None
+    K, H, W = radiance.shape
+    R, d = sensor.maps(H, W)
+    light = intensity / 256.0 * radiance.mean(axis=0)
+    share = (light / np.maximum(light + d, 1e-12)).reshape(-1)
+    t = np.arange(frames, dtype=np.float64)
+    phi = 1.0 + sensor.flicker_depth * np.sin(2 * np.pi * t / sensor.flicker_period_frames)
+    return Modulation(phi, share)
 
 
 @dataclass(frozen=True, eq=False)
@@ -72,40 +128,54 @@ def window_counts(spikes: np.ndarray, w: int) -> np.ndarray:
     return flat.sum(axis=1, dtype=np.int32).astype(np.float64)
 
 
-def count_variance(simulated: np.ndarray, w: int, static_reference: bool) -> np.ndarray:
+def count_variance(simulated: np.ndarray, w: int, static_reference: bool,
+                   modulation: Modulation | None = None) -> np.ndarray:
     """``[P]`` predictive variance of a pixel's count in ``w`` frames: the variance of the
-    simulated counts over the windows of the whole run (``K = 1``), or half the variance of the
-    differences of consecutive windows (``K > 1``: the scene moves the mean); plus 1/12, the
-    rounding of a count. Windows longer than a twelfth of the run scale from that length
-    (renewal: the variance grows with the window)."""
+    simulated counts over the windows of the whole run (``K = 1``; with a ``modulation``, about
+    the modulated mean), or half the variance of the differences of consecutive windows
+    (``K > 1``: the scene moves the mean); at least :data:`VAR_FLOOR` (a pixel whose count never
+    varies). Windows longer than a twelfth of the run scale from that length (renewal: the
+    variance grows with the window)."""
     T = simulated.shape[0]
     wv = min(w, max(T // 12, 1))
     s = window_counts(simulated, wv)
-    if static_reference:
+    if static_reference and modulation is not None:
+        rate = simulated.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
+        v = ((s - wv * rate[None, :] * modulation.window_factor(wv, 0, s.shape[0])) ** 2).sum(axis=0) / (s.shape[0] - 1)
+    elif static_reference:
         v = s.var(axis=0, ddof=1)
     else:
         v = np.diff(s, axis=0).var(axis=0, ddof=1) / 2.0
-    return v * (w / wv) + 1.0 / 12.0
+    return np.maximum(v * (w / wv), VAR_FLOOR)
 
 
 def score(measured: np.ndarray, simulated: np.ndarray, sim_stats: stats.PixelStats, mask: np.ndarray,
-          static_reference: bool) -> HeldOutScore:
+          static_reference: bool, modulation: Modulation | None = None) -> HeldOutScore:
     """The held-out score of ``measured [Th, H, W]`` under ``simulated [T, H, W]`` (the whole run,
     whose last ``Th`` frames are the held-out ones) with interval statistics ``sim_stats``;
-    pixels ``mask [P]``."""
-    per_pixel = _interval_loglik(measured, sim_stats)
+    pixels ``mask [P]``; ``modulation``: the model's (None: none)."""
+    if modulation is None:
+        per_pixel = _interval_loglik(measured, sim_stats)
+    else:
+        per_pixel = _clock_interval_loglik(measured, simulated, modulation)
     lengths = window_lengths(measured.shape[0])
     for w in lengths:
-        per_pixel = per_pixel + _count_loglik(measured, simulated, sim_stats, mask, w, static_reference) / len(lengths)
+        per_pixel = per_pixel + _count_loglik(measured, simulated, sim_stats, mask, w, static_reference,
+                                              modulation) / len(lengths)
     per_pixel = np.where(mask, per_pixel, 0.0)
     return HeldOutScore(float(per_pixel[mask].mean()) if mask.any() else 0.0, per_pixel)
 
 
-def _count_loglik(measured, simulated, sim_stats, mask, w: int, static_reference: bool) -> np.ndarray:
+def _count_loglik(measured, simulated, sim_stats, mask, w: int, static_reference: bool,
+                  modulation: Modulation | None = None) -> np.ndarray:
     """``[P]`` summed log density of the held-out window counts of length ``w``."""
     Th, T = measured.shape[0], simulated.shape[0]
     c, s = window_counts(measured, w), window_counts(simulated[T - Th:], w)
-    if static_reference:
+    if static_reference and modulation is not None:
+        rate = simulated.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
+        m = w * rate[None, :] * modulation.window_factor(w, T - Th, c.shape[0])
+        v = count_variance(simulated, w, True, modulation) * (1.0 + w / T)
+    elif static_reference:
         pop = s[:, mask].sum(axis=1)
         factor = pop / max(pop.mean(), 1e-12)
         rate = simulated.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
@@ -119,27 +189,118 @@ def _count_loglik(measured, simulated, sim_stats, mask, w: int, static_reference
 
 def _interval_loglik(measured, sim_stats: stats.PixelStats) -> np.ndarray:
     """``[P]`` summed log density of the held-out intervals under a Gaussian of the simulated
-    interval mean and variance (plus 1/12, a frame's rounding, and the mean's sampling error)."""
+    interval mean and variance (with the mean's sampling error, at least :data:`VAR_FLOOR`)."""
     P = sim_stats.n.size
     ps = stats.pixel_stats(measured)
     pix = stats.interval_pixels(measured)
     n = np.maximum(sim_stats.n_isi, 1)
     mu = np.where(np.isfinite(sim_stats.isi_mean), sim_stats.isi_mean, measured.shape[0] + 1.0)
-    var = np.nan_to_num(sim_stats.isi_var, nan=0.0) * (1.0 + 1.0 / n) + 1.0 / 12.0
+    var = np.maximum(np.nan_to_num(sim_stats.isi_var, nan=0.0) * (1.0 + 1.0 / n), VAR_FLOOR)
     x = ps.isi_values
     ll = -0.5 * (np.log(2 * np.pi * var[pix]) + (x - mu[pix]) ** 2 / var[pix])
     return np.bincount(pix, weights=ll, minlength=P)
 
 
+def _clock_interval_loglik(measured, simulated, modulation: Modulation) -> np.ndarray:
+    """``[P]`` as :func:`_interval_loglik`, on the model's clock (:class:`Modulation`): the
+    simulated intervals ``tau_p(t1) - tau_p(t0)`` of the whole run give each pixel's mean and
+    variance, the measured held-out ones are scored, plus ``log f_p(t1)`` per interval."""
+    Th, T = measured.shape[0], simulated.shape[0]
+    P = int(np.prod(simulated.shape[1:]))
+    pix, t = stats.spike_times(simulated)
+    same = pix[1:] == pix[:-1]
+    tau = modulation.clock(t, pix)
+    mean, var, n = stats.grouped_var((tau[1:] - tau[:-1])[same], pix[1:][same], P, 3)
+    mu = np.where(np.isfinite(mean), mean, T + 1.0)
+    var = np.maximum(np.nan_to_num(var, nan=0.0) * (1.0 + 1.0 / np.maximum(n, 1)), VAR_FLOOR)
+    mpix, mt = stats.spike_times(measured)
+    mt = mt + (T - Th)  # frames of the whole run
+    keep = mpix[1:] == mpix[:-1]
+    mtau = modulation.clock(mt, mpix)
+    x, p, end = (mtau[1:] - mtau[:-1])[keep], mpix[1:][keep], mt[1:][keep]
+    ll = -0.5 * (np.log(2 * np.pi * var[p]) + (x - mu[p]) ** 2 / var[p]) + np.log(modulation.factor(end, p))
+    return np.bincount(p, weights=ll, minlength=P)
+
+
 def static_pixels(spikes: np.ndarray) -> np.ndarray:
-    """``[P]`` bool: pixels whose counts in 8 equal segments of the whole recording agree
-    within counting noise (dispersion ``sum (c - mean)^2 / (mean + 1)`` at most
-    :data:`STATIC_DISPERSION`; a renewal train with interval CV <= 1 gives about 7)."""
+    """``[P]`` bool: pixels whose rate does not change over the recording, by two tests on 8
+    equal segments; a pixel is static if it passes both.
+
+    1. Counts: the dispersion ``sum (c - mean)^2 / (mean + 1)`` at most :data:`STATIC_DISPERSION`
+       (a renewal train with interval CV <= 1 gives about 7).
+    2. Intervals (:func:`interval_dispersion`): each segment's mean interval ``(last - first) /
+       (n - 1)``, which for a regular pixel is exact to a fraction of a frame, agrees across the
+       segments within its own error: the chi-square is below its ``1 - STATIC_P`` quantile. A
+       small change of a bright pixel's rate (a bright object over a bright background) moves
+       the count by a spike or two, but the mean interval by many standard errors.
+
+    A modulation shared by all pixels (stats.shared_variance, as flicker) moves no pixel: when
+    one is found the intervals are measured on the population's clock (stats.population_clock)."""
     seg = spikes.shape[0] // 8
     c = window_counts(spikes, seg)[:8]
     mean = c.mean(axis=0)
     dispersion = ((c - mean) ** 2).sum(axis=0) / (mean + 1.0)
-    return dispersion <= STATIC_DISPERSION
+    static = dispersion <= STATIC_DISPERSION
+    chi2, dof = interval_dispersion(spikes, static)
+    return static & ~(chi2 > _chi2_quantile(dof, STATIC_P))
+
+
+def interval_dispersion(spikes: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(chi-square [P], degrees of freedom [P])`` of the segment mean intervals of each pixel
+    (8 equal segments; those with >= 3 spikes), against their weighted mean, each with variance
+    ``((n - 1) v + 1/6) / (n - 1)^2``: ``v = max(var(d) / 2 - 1/4, 0)`` the pixel's interval
+    variance beyond rounding from the differences ``d`` of consecutive intervals (which a slow
+    change of rate leaves out; stats.excess_interval_var), 1/6 the rounding of the two ends.
+    With a modulation shared by the pixels of ``mask [P]`` (at least ``5`` standard errors and a
+    relative SD of 0.01 in windows of stats.COMMON_WINDOW frames) times are measured on their
+    population's clock, and its counting noise is added to the variance. ``dof`` is 0 where
+    fewer than 3 segments count."""
+    T = spikes.shape[0]
+    P = int(np.prod(spikes.shape[1:]))
+    seg = T // 8
+    pix, t = stats.spike_times(spikes)
+    shared, se = stats.shared_variance(spikes, mask)
+    clock_var = 0.0
+    if mask.any() and shared >= 5.0 * se and shared >= 0.01 ** 2:
+        clock = stats.population_clock(spikes, mask)
+        lam = spikes.reshape(T, -1)[:, mask].mean(axis=0, dtype=np.float64)
+        clock_var = float((lam * (1.0 - lam)).sum() / max(lam.sum(), 1e-12) ** 2)  # per frame
+        tt = clock[t]
+    else:
+        tt = t.astype(np.float64)
+    same = pix[1:] == pix[:-1]
+    same2 = same[1:] & same[:-1]
+    dd = (tt[2:] - 2 * tt[1:-1] + tt[:-2])[same2]
+    _, diff_var, n_d = stats.grouped_var(dd, pix[2:][same2], P, 3)
+    v = np.maximum(np.nan_to_num(diff_var / (1.0 + 1.0 / np.maximum(n_d, 1))) / 2.0 - 0.25, 0.0)
+    inside = t < 8 * seg
+    key = pix[inside] * 8 + t[inside] // seg  # sorted: by pixel, then time
+    n = np.bincount(key, minlength=8 * P)
+    ends = np.cumsum(n)
+    has = n >= 3
+    first, last = np.zeros(8 * P), np.zeros(8 * P)
+    ti, fi = tt[inside], t[inside]
+    first[has], last[has] = ti[ends[has] - n[has]], ti[ends[has] - 1]
+    span = np.zeros(8 * P)
+    span[has] = (fi[ends[has] - 1] - fi[ends[has] - n[has]]).astype(np.float64)
+    k = np.maximum(n - 1, 1).astype(np.float64)
+    m = ((last - first) / k).reshape(P, 8)
+    var = ((k * np.repeat(v, 8) + 1.0 / 6.0 + span * clock_var) / k ** 2).reshape(P, 8)
+    w = np.where(has.reshape(P, 8), 1.0 / var, 0.0)
+    wsum = w.sum(axis=1)
+    mbar = (w * m).sum(axis=1) / np.maximum(wsum, 1e-300)
+    chi2 = (w * (m - mbar[:, None]) ** 2).sum(axis=1)
+    dof = np.maximum(has.reshape(P, 8).sum(axis=1) - 1, 0)
+    return np.where(dof >= 2, chi2, 0.0), np.where(dof >= 2, dof, 0)
+
+
+def _chi2_quantile(dof: np.ndarray, p: float) -> np.ndarray:
+    """Upper ``p`` quantile of the chi-square law with ``dof`` degrees of freedom (Wilson and
+    Hilferty's cube-root approximation; infinite where ``dof`` is 0)."""
+    z = {1e-4: 3.7190}[p]  # the standard normal's upper quantile
+    k = np.maximum(np.asarray(dof, dtype=np.float64), 1.0)
+    q = k * (1.0 - 2.0 / (9.0 * k) + z * np.sqrt(2.0 / (9.0 * k))) ** 3
+    return np.where(np.asarray(dof) > 0, q, np.inf)
 
 
 def penalty(name: str, parameters) -> tuple[float, bool]:

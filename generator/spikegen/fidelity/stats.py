@@ -57,7 +57,9 @@ def spike_times(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     return pix.astype(np.int64), t.astype(np.int64)
 
 
-def _grouped_var(values, groups, P, min_count):
+def grouped_var(values, groups, P, min_count):
+    """``(mean, variance, count)``, each ``[P]``, of ``values`` grouped by ``groups`` (pixel
+    indices); the mean is NaN without values, the variance NaN below ``min_count`` values."""
     cnt = np.bincount(groups, minlength=P).astype(np.float64)
     s1 = np.bincount(groups, weights=values, minlength=P)
     s2 = np.bincount(groups, weights=values * values, minlength=P)
@@ -69,8 +71,10 @@ def _grouped_var(values, groups, P, min_count):
     return mean, var, cnt
 
 
-def pixel_stats(spikes: np.ndarray) -> PixelStats:
-    """Timing statistics of every pixel of ``spikes [T, H, W]`` (see :class:`PixelStats`)."""
+def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None) -> PixelStats:
+    """Timing statistics of every pixel of ``spikes [T, H, W]`` (see :class:`PixelStats`).
+    ``clock [T]``: the time of each frame to measure intervals in (``isi_mean``, ``isi_var``,
+    ``span_var``, ``diff_var``, ``isi_values``; :func:`population_clock`); None: frames."""
     T = spikes.shape[0]
     P = int(np.prod(spikes.shape[1:]))
     pix, t = spike_times(spikes)
@@ -85,21 +89,23 @@ def pixel_stats(spikes: np.ndarray) -> PixelStats:
     with np.errstate(invalid="ignore", divide="ignore"):
         rate = np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
     same = pix[1:] == pix[:-1]
-    isi = (t[1:] - t[:-1])[same].astype(np.float64)
+    frames_isi = (t[1:] - t[:-1])[same].astype(np.float64)
+    tt = t if clock is None else np.asarray(clock, dtype=np.float64)[t]
+    isi = frames_isi if clock is None else (tt[1:] - tt[:-1])[same]
     isi_pix = pix[1:][same]
-    isi_mean, isi_var, n_isi = _grouped_var(isi, isi_pix, P, 3)
+    isi_mean, isi_var, n_isi = grouped_var(isi, isi_pix, P, 3)
     same2 = same[1:] & same[:-1]  # consecutive intervals of one pixel
-    dd = (t[2:] - 2 * t[1:-1] + t[:-2])[same2].astype(np.float64)
-    _, diff_var, n_d = _grouped_var(dd, pix[2:][same2], P, 3)
+    dd = (tt[2:] - 2 * tt[1:-1] + tt[:-2])[same2].astype(np.float64)
+    _, diff_var, n_d = grouped_var(dd, pix[2:][same2], P, 3)
     # consecutive differences share an interval (lag-1 correlation -1/2), which inflates their
     # sample variance by (1 + 1/n) in expectation
     diff_var = diff_var / (1.0 + 1.0 / np.maximum(n_d, 1))
     m = MAX_SPAN
     same_m = pix[m:] == pix[:-m]
-    span = (t[m:] - t[:-m])[same_m].astype(np.float64)
-    _, span_var, _ = _grouped_var(span, pix[m:][same_m], P, 3)
-    isi_min, isi_max = _isi_extremes(isi, isi_pix, P)
-    ones = np.bincount(isi_pix, weights=(isi == 1).astype(np.float64), minlength=P)
+    span = (tt[m:] - tt[:-m])[same_m].astype(np.float64)
+    _, span_var, _ = grouped_var(span, pix[m:][same_m], P, 3)
+    isi_min, isi_max = _isi_extremes(frames_isi, isi_pix, P)
+    ones = np.bincount(isi_pix, weights=(frames_isi == 1).astype(np.float64), minlength=P)
     single = (n_isi >= 3) & (isi_min == isi_max)
     return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi,
                       diff_var)
@@ -171,6 +177,43 @@ def excess_interval_var(meas: PixelStats, noisy: np.ndarray | None = None) -> np
     span = (meas.span_var - meas.isi_var) / (MAX_SPAN - 1)
     noisy = meas.isi_var >= 2.0 if noisy is None else noisy
     return np.where(noisy, (meas.diff_var - 0.5) / 2.0, span)
+
+
+# ---------------------------------------------------------------------- modulation shared by all pixels
+COMMON_WINDOW = 4  # frames: the window of the shared-variance test
+
+
+def shared_variance(spikes: np.ndarray, mask: np.ndarray, w: int = COMMON_WINDOW) -> tuple[float, float]:
+    """``(variance, its standard error)`` of a modulation shared by all pixels of ``mask [P]``,
+    relative to their mean count, in windows of ``w`` frames of ``spikes [T, H, W]``: the smallest
+    covariance between the relative population counts of the four quadrants of the image. A
+    modulation of all pixels is in every pair; the pixels' own noise is in none (they fire
+    independently), and an object that moves over part of the image is not in every pair. The
+    error is the largest of the pairs' ``sqrt(var_A var_B / (n - 1))`` over ``n`` windows."""
+    T, H, W = spikes.shape[0], spikes.shape[1], int(np.prod(spikes.shape[2:]))
+    n = T // w
+    mask = np.asarray(mask).reshape(H, W)
+    quads = [mask[:H // 2, :W // 2], mask[:H // 2, W // 2:], mask[H // 2:, :W // 2], mask[H // 2:, W // 2:]]
+    if n < 4 or min(int(q.sum()) for q in quads) < 4:
+        return 0.0, math.inf
+    windows = spikes[: n * w].reshape(n, w, H, W).sum(axis=1, dtype=np.int32)
+    rel = []
+    for r0, c0, q in ((0, 0, quads[0]), (0, W // 2, quads[1]), (H // 2, 0, quads[2]), (H // 2, W // 2, quads[3])):
+        pop = windows[:, r0: r0 + q.shape[0], c0: c0 + q.shape[1]][:, q].sum(axis=1, dtype=np.int64).astype(np.float64)
+        rel.append(pop / max(float(pop.mean()), 1e-12) - 1.0)
+    cov = [float((a * b).sum()) / (n - 1) for k, a in enumerate(rel) for b in rel[k + 1:]]
+    var = [float((a * a).sum()) / (n - 1) for a in rel]
+    se = max(math.sqrt(var[a] * var[b] / (n - 1)) for a in range(4) for b in range(a + 1, 4))
+    return min(cov), se
+
+
+def population_clock(spikes: np.ndarray, mask: np.ndarray) -> np.ndarray:
+    """``[T]`` the time of each frame on the clock of the population of ``mask [P]``:
+    ``sum_{u <= t} S(u) / mean(S)`` with ``S`` its spikes per frame. Intervals measured on it
+    lose a modulation of the light shared by all pixels (as a pixel of rate ``lambda phi(t)``
+    fires every ``1 / lambda`` of ``sum phi``)."""
+    s = population_signal(spikes, mask)
+    return np.cumsum(s / max(float(s.mean()), 1e-12))
 
 
 # ---------------------------------------------------------------------- population signal
