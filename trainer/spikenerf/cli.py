@@ -54,7 +54,8 @@ def main():
 @click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
               help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
 @click.option("--grid-final", default=TrainConfig.grid_final, show_default=True, type=click.IntRange(min=0),
-              help="Final grid resolution: points across the cube [-1.5, 1.5] (0 = chosen from the image width).")
+              help="Final grid resolution: points across the cube [-1.5, 1.5], or across [-1, 1] in NDC for a "
+                   "forward-facing capture (0 = chosen from the image width).")
 @click.option("--fit-box/--no-fit-box", default=TrainConfig.fit_box, show_default=True,
               help="Crop the grid to the box the object occupies before each growth (an object on white; a "
                    "scene that fills the frame keeps the whole box).")
@@ -115,6 +116,10 @@ def render_cmd(run, path_name, frames, out, fps, device, quiet):
       orbit:  azimuth 360 s deg, elevation 30 deg, distance r (the NeRF-synthetic test circle)
       spiral: azimuth 720 s deg (two turns), elevation 30 - 20 cos(2 pi s) deg (10 to 50 and
               back), distance r (1 - 0.075 (1 - cos(2 pi s))) (r to 0.85 r and back)
+    A run of a forward-facing capture (its field in NDC) circles its reference camera instead,
+    turned as it is, at the training cameras' median distance r from it (orbit: once in its image
+    plane; spiral: twice, moving forward by r (1 - cos(2 pi s)) / 2); depth is then the NDC z,
+    yellow at -1 (near plane) to dark purple at 1 (infinity).
     """
     from .video import render_video
 
