@@ -2,14 +2,12 @@
 
     python bench/bench_ndc.py DATASET --work DIR [--iters 1000] [--resolution 200] [--seed 0] [--reuse-runs]
 
-DATASET: a folder the trainer trains in NDC (a scene that fills the frame, views all facing one way,
+DATASET: a folder the trainer can train in NDC (a scene that fills the frame, views all facing one way,
 near/far bounds: e.g. one written by ``spikegen import``). Trains the default method on the CPU
 twice, same seed, iterations and resolution, and evaluates both with ``spikenerf eval``:
 
-- ``DIR/run_cube``: the field in the world cube [-1.5, 1.5]^3, what the trainer did with such a
-  folder before NDC existed (``ndc.for_dataset`` made to answer None for this run; the cube path is
-  otherwise the trainer's own, unchanged);
-- ``DIR/run_ndc``: what the trainer does now (spikenerf/ndc.py).
+- ``DIR/run_cube``: the field in the world cube [-1.5, 1.5]^3 (``--space cube``, the default);
+- ``DIR/run_ndc``: the field in NDC (``--space ndc``, spikenerf/ndc.py).
 
 Prints each run's held-out PSNR and SSIM (against what ``eval`` compares with: the ground truth,
 or each view's long-window reconstruction), per-view PSNR, the final grid's dimensions and the
@@ -26,7 +24,6 @@ from pathlib import Path
 import numpy as np
 
 from spikegen.spikeio import linear_to_srgb
-from spikenerf import train as train_mod
 from spikenerf.config import TrainConfig
 from spikenerf.data import load_dataset
 from spikenerf.eval import evaluate, reference
@@ -41,14 +38,8 @@ def run_one(name: str, args) -> dict:
             and load_checkpoint(ck, "cpu")["iteration"] == args.iters):
         shutil.rmtree(run, ignore_errors=True)
         cfg = TrainConfig(dataset=str(Path(args.dataset).resolve()), iters=args.iters, resolution=args.resolution,
-                          device="cpu", seed=args.seed)
-        real = train_mod.ndc.for_dataset
-        if name == "cube":
-            train_mod.ndc.for_dataset = lambda ds: (None, "the world cube, as before NDC (bench_ndc.py)")
-        try:
-            train(cfg, run, progress=False, log=lambda *a: None)
-        finally:
-            train_mod.ndc.for_dataset = real
+                          device="cpu", seed=args.seed, space="cube" if name == "cube" else "ndc")
+        train(cfg, run, progress=False, log=lambda *a: None)
         evaluate(run, device="cpu", progress=False)
     out = json.loads((run / "metrics.json").read_text())
     state = load_checkpoint(ck, "cpu")

@@ -11,6 +11,7 @@ pytestmark = pytest.mark.torch
 
 from click.testing import CliRunner  # noqa: E402
 
+from spikegen.errors import InputError  # noqa: E402
 from spikegen.spikeio import linear_to_srgb, write_json_atomic  # noqa: E402
 from spikenerf import ndc, train as train_mod  # noqa: E402
 from spikenerf.cli import main  # noqa: E402
@@ -21,6 +22,7 @@ from spikenerf.metrics import psnr  # noqa: E402
 from spikenerf.model import GridField  # noqa: E402
 from spikenerf.render import render_rays  # noqa: E402
 from spikenerf.train import checkpoint_space, train  # noqa: E402
+from test_trainer_cli import dataset  # noqa: E402,F401 (the sphere on white: an object, not a capture)
 from test_trainer_forward import CAM_Z, CARD_Z, H, K, W, make_capture  # noqa: E402
 
 
@@ -140,8 +142,8 @@ def test_views_facing_other_ways_keep_the_world_cube(capture, tmp_path):
     assert float(why.split("optical axis is ")[1].split(" degrees")[0]) > ndc.MAX_AXIS_DEG  # said, and above
     run = tmp_path / "run"
     msgs = []
-    train(TrainConfig(dataset=str(ds.root), iters=2, device="cpu", batch_rays=64), run, progress=False,
-          log=msgs.append)
+    train(TrainConfig(dataset=str(ds.root), iters=2, device="cpu", batch_rays=64, space="auto"), run,
+          progress=False, log=msgs.append)
     assert any("not forward-facing" in m and "stays in the world cube" in m for m in msgs)
     assert "space" not in torch.load(run / "checkpoint.pt", weights_only=False)
 
@@ -156,7 +158,7 @@ def test_a_capture_without_bounds_is_not_ndc(capture, tmp_path):
 
 def _cfg(capture, **kw):
     base = dict(dataset=str(capture), iters=200, device="cpu", batch_rays=1024, grid_start=16, grid_final=48,
-                occupancy_after=50)
+                occupancy_after=50, space="ndc")
     base.update(kw)
     return TrainConfig(**base)
 
@@ -199,7 +201,7 @@ def test_ndc_space_round_trips_through_json_and_a_resumed_run_is_bit_identical(c
 def test_a_checkpoint_from_before_ndc_resumes_and_evaluates_in_the_world_cube(capture, tmp_path, monkeypatch):
     """A run of a forward-facing capture made before NDC existed (no "space" key, the world cube) goes
     on in the cube when resumed now, ending as an uninterrupted cube run does, bit for bit."""
-    cfg = _cfg(capture, iters=60, occupancy_after=20, occupancy_every=10)
+    cfg = _cfg(capture, iters=60, occupancy_after=20, occupancy_every=10, space="auto")
     old, whole = tmp_path / "old", tmp_path / "whole"
     with monkeypatch.context() as mp:  # the trainer as it was: no NDC
         mp.setattr(train_mod.ndc, "for_dataset", lambda ds: (None, "before NDC"))
@@ -213,3 +215,18 @@ def test_a_checkpoint_from_before_ndc_resumes_and_evaluates_in_the_world_cube(ca
     assert "space" not in co and co["field"]["aabb"] == cw["field"]["aabb"] == [[-1.5] * 3, [1.5] * 3]
     assert torch.equal(co["state"]["grid"], cw["state"]["grid"])
     assert evaluate(old, device="cpu", progress=False)["psnr"] == evaluate(whole, device="cpu", progress=False)["psnr"]
+
+
+def test_the_cube_stays_the_default_and_ndc_is_refused_where_it_does_not_apply(capture, dataset, tmp_path):
+    """NDC is opt-in (--space ndc|auto): by default a forward capture trains in the world cube; asked
+    for an object on white, or for views that do not face one way, it is one clear error, no run."""
+    msgs = []
+    train(_cfg(capture, iters=2, space="cube"), tmp_path / "cube", progress=False, log=msgs.append)
+    assert "space" not in torch.load(tmp_path / "cube" / "checkpoint.pt", weights_only=False)
+    assert not any("NDC" in m for m in msgs)
+    with pytest.raises(InputError, match="not an object on white"):
+        train(TrainConfig(dataset=str(dataset), iters=2, device="cpu", space="ndc"), tmp_path / "w", progress=False,
+              log=lambda m: None)
+    assert not (tmp_path / "w").exists()
+    with pytest.raises(InputError, match="checkpoint was made with space='cube'"):
+        train(_cfg(capture, iters=4), tmp_path / "cube", progress=False, log=lambda m: None)  # ndc on a cube run

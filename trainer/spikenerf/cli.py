@@ -59,6 +59,9 @@ def main():
 @click.option("--fit-box/--no-fit-box", default=TrainConfig.fit_box, show_default=True,
               help="Crop the grid to the box the object occupies before each growth (an object on white; a "
                    "scene that fills the frame keeps the whole box).")
+@click.option("--space", type=click.Choice(["cube", "auto", "ndc"]), default=TrainConfig.space, show_default=True,
+              help="The field's space for a scene that fills the frame (an imported capture): the world cube, "
+                   "NDC (views facing one way), or auto (NDC where it applies). Objects on white use the cube.")
 @click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),
               help="Weight of the total-variation (smoothness) prior on the grids.")
 @click.option("--tv-points", default=TrainConfig.tv_points, show_default=True, type=click.IntRange(min=0),
@@ -69,7 +72,7 @@ def main():
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, seed, batch_rays, sh_degree,
-          grid_final, fit_box, tv_weight, tv_points, checkpoint_every, do_eval, quiet):
+          grid_final, fit_box, space, tv_weight, tv_points, checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
 
@@ -77,7 +80,7 @@ def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, 
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
                       frames=frames, seed=seed, batch_rays=batch_rays, sh_degree=sh_degree,
-                      grid_final=grid_final, fit_box=fit_box, tv_weight=tv_weight, tv_points=tv_points,
+                      grid_final=grid_final, fit_box=fit_box, tv_weight=tv_weight, tv_points=tv_points, space=space,
                       checkpoint_every=checkpoint_every, sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
                       else "")
     ck = run_train(cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True))

@@ -57,6 +57,9 @@ def grid_schedule(cfg: TrainConfig, width: int) -> list[tuple[int, int]]:
     return [(int(f * cfg.iters), s) for f, s in zip(cfg.upsample_at, sizes)]
 
 
+SPACES = ("cube", "auto", "ndc")  # TrainConfig.space
+
+
 def make_field(cfg: TrainConfig, width: int, space: ndc.NDC | None = None) -> GridField:
     """The cube ``[-1.5, 1.5]^3`` in world units; with ``space``, its NDC box, sized as the cube
     ``[-1, 1]^3`` would be (``grid_start`` points across [-1, 1], cubic voxels, the box's upper
@@ -205,10 +208,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> No
     # checkpoints from before SH was added have no SH keys: they are degree 0 (the scale is then moot);
     # those from before --frames used every frame of the stream
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
-           "fit_box": False, **ck["config"]}
+           "fit_box": False, "space": "cube", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale", "frames", "sensor_maps", "fit_box"):
+                "sh_scale", "frames", "sensor_maps", "fit_box", "space"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
@@ -231,9 +234,16 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame)
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
-    space = None  # an object on white: the field lies in the world cube
-    if ds.fills_frame:  # a scene that fills the frame: NDC if its views all look one way
+    space = None  # the world cube (an object on white, or a scene that fills the frame with --space cube)
+    if cfg.space not in SPACES:
+        raise InputError(f"unknown space {cfg.space!r}; one of {', '.join(SPACES)}")
+    if cfg.space != "cube" and not ds.fills_frame:
+        if cfg.space == "ndc":
+            raise InputError(f"{ds.root}: --space ndc is for a scene that fills the frame, not an object on white")
+    elif cfg.space != "cube":  # a scene that fills the frame: NDC if its views all look one way
         space, why = ndc.for_dataset(ds)
+        if space is None and cfg.space == "ndc":
+            raise InputError(f"{ds.root}: --space ndc: {why}")
         log(f"{ds.root}: {why}" + ("" if space else "; the field stays in the world cube [-1.5, 1.5]^3"))
     tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None)
     out.mkdir(parents=True, exist_ok=True)  # after every input is read: bad input leaves no run folder
