@@ -26,7 +26,8 @@ from spikenerf.config import TrainConfig  # noqa: E402
 from spikenerf.eval import evaluate, reference  # noqa: E402
 from spikenerf.metrics import psnr  # noqa: E402
 from spikenerf.render import render_image  # noqa: E402
-from spikenerf.train import checkpoint_camera, field_from_checkpoint, load_checkpoint, train  # noqa: E402
+from spikenerf.train import (checkpoint_camera, checkpoint_space, field_from_checkpoint, load_checkpoint,  # noqa: E402
+                             train)
 from test_trainer_forward import H, W, _radiance, make_capture  # noqa: E402
 
 
@@ -43,7 +44,7 @@ def psnr_vs_truth(run: Path, ds) -> float:
     vals = []
     for v in ds.splits["test"]:
         x, _ = render_image(field, torch.as_tensor(v.pose, dtype=torch.float32), height, width, focal,
-                            background=background)
+                            background=background, space=checkpoint_space(ck))
         truth = linear_to_srgb(np.clip(_radiance(v.pose), 0, 1))
         vals.append(psnr(linear_to_srgb(x.clamp(0, 1).numpy()), truth))
     return float(np.mean(vals))

@@ -54,10 +54,14 @@ def main():
 @click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
               help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
 @click.option("--grid-final", default=TrainConfig.grid_final, show_default=True, type=click.IntRange(min=0),
-              help="Final grid resolution: points across the cube [-1.5, 1.5] (0 = chosen from the image width).")
+              help="Final grid resolution: points across the cube [-1.5, 1.5], or across [-1, 1] in NDC for a "
+                   "forward-facing capture (0 = chosen from the image width).")
 @click.option("--fit-box/--no-fit-box", default=TrainConfig.fit_box, show_default=True,
               help="Crop the grid to the box the object occupies before each growth (an object on white; a "
                    "scene that fills the frame keeps the whole box).")
+@click.option("--space", type=click.Choice(["cube", "auto", "ndc"]), default=TrainConfig.space, show_default=True,
+              help="The field's space for a scene that fills the frame (an imported capture): the world cube, "
+                   "NDC (views facing one way), or auto (NDC where it applies). Objects on white use the cube.")
 @click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),
               help="Weight of the total-variation (smoothness) prior on the grids.")
 @click.option("--tv-points", default=TrainConfig.tv_points, show_default=True, type=click.IntRange(min=0),
@@ -71,7 +75,7 @@ def main():
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, seed, batch_rays, sh_degree,
-          grid_final, fit_box, tv_weight, tv_points, lazy_above, checkpoint_every, do_eval, quiet):
+          grid_final, fit_box, space, tv_weight, tv_points, lazy_above, checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
 
@@ -79,8 +83,9 @@ def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, 
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
                       frames=frames, seed=seed, batch_rays=batch_rays, sh_degree=sh_degree,
-                      grid_final=grid_final, fit_box=fit_box, tv_weight=tv_weight, tv_points=tv_points,
-                      lazy_above=lazy_above, checkpoint_every=checkpoint_every, sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
+                      grid_final=grid_final, fit_box=fit_box, tv_weight=tv_weight, tv_points=tv_points, space=space,
+                      lazy_above=lazy_above, checkpoint_every=checkpoint_every,
+                      sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
                       else "")
     ck = run_train(cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True))
     click.echo(f"checkpoint: {ck}")
@@ -118,6 +123,10 @@ def render_cmd(run, path_name, frames, out, fps, device, quiet):
       orbit:  azimuth 360 s deg, elevation 30 deg, distance r (the NeRF-synthetic test circle)
       spiral: azimuth 720 s deg (two turns), elevation 30 - 20 cos(2 pi s) deg (10 to 50 and
               back), distance r (1 - 0.075 (1 - cos(2 pi s))) (r to 0.85 r and back)
+    A run of a forward-facing capture (its field in NDC) circles its reference camera instead,
+    turned as it is, at the training cameras' median distance r from it (orbit: once in its image
+    plane; spiral: twice, moving forward by r (1 - cos(2 pi s)) / 2); depth is then the NDC z,
+    yellow at -1 (near plane) to dark purple at 1 (infinity).
     """
     from .video import render_video
 

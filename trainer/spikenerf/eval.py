@@ -10,7 +10,8 @@ held-out view is compared with its own long-window reconstruction instead, the s
 its whole stream with the dataset's fixed pattern removed (``rate / R - d``, as the imported PNG),
 in linear luminance (the PNG itself is scaled to its 99.5th percentile, so not in the field's
 units) -> the same encoding; a scene that fills the frame is rendered without the white
-composite (its run's background). ``metrics.json`` says which: ``"compared_with"``.
+composite (its run's background), and a forward-facing one in its run's NDC space (ndc.py).
+``metrics.json`` says which: ``"compared_with"``.
 """
 from __future__ import annotations
 
@@ -26,7 +27,8 @@ from spikegen.errors import InputError
 from .data import area_resize, ground_truth, has_ground_truth, load_dataset, load_sensor_maps, read_view_spikes
 from .metrics import Lpips, psnr, ssim
 from .render import render_image
-from .train import CHECKPOINT, checkpoint_camera, field_from_checkpoint, load_checkpoint, resolve_device
+from .train import (CHECKPOINT, checkpoint_camera, checkpoint_space, field_from_checkpoint, load_checkpoint,
+                    resolve_device)
 
 GROUND_TRUTH, RECONSTRUCTION = "ground truth", "reconstruction"  # metrics.json "compared_with"
 
@@ -52,12 +54,13 @@ def evaluate(run: Path, split: str = "test", device: str = "auto", progress: boo
     views = ds.splits[split][:max_views] if max_views else ds.splits[split]
     field = field_from_checkpoint(ck, dev).eval()
     H, W, focal, background = checkpoint_camera(ck)
+    space = checkpoint_space(ck)  # NDC for a forward-facing capture (its rays are mapped as in training)
     lp = Lpips()
     out_dir = run / f"eval_{split}"
     rows, kinds = [], set()
     for i, view in enumerate(tqdm(views, desc=f"eval {split}", disable=not progress, unit="view")):
         pose = torch.as_tensor(view.pose, dtype=torch.float32, device=dev)
-        x, _ = render_image(field, pose, H, W, focal, background=background)
+        x, _ = render_image(field, pose, H, W, focal, background=background, space=space)
         pred = spikeio.linear_to_srgb(x.clamp(0, 1).cpu().numpy())
         kind, gt_x, alpha = reference(ds, view, H, W)
         kinds.add(kind)

@@ -16,6 +16,7 @@ from __future__ import annotations
 import torch
 
 BACKGROUND = 1.0  # transparent film composited onto white (X = 1), as the dataset's ground truth
+NEAR_T = 0.05  # world rays are sampled from this distance on (rays in NDC start at their near plane: 0)
 
 
 def pixel_rays(poses: torch.Tensor, pix: torch.Tensor, height: int, width: int, focal_px):
@@ -37,7 +38,7 @@ def pixel_rays(poses: torch.Tensor, pix: torch.Tensor, height: int, width: int, 
     return poses[:, :3, 3], d / d.norm(dim=-1, keepdim=True)
 
 
-def box_interval(origins: torch.Tensor, dirs: torch.Tensor, box: torch.Tensor, near: float = 0.05):
+def box_interval(origins: torch.Tensor, dirs: torch.Tensor, box: torch.Tensor, near: float = NEAR_T):
     """Entry and exit distances ``[n]`` of rays through the box ``[2, 3]`` (lo, hi) (exit <= entry: miss)."""
     inv = 1.0 / torch.where(dirs.abs() < 1e-9, torch.full_like(dirs, 1e-9), dirs)
     t0 = (box[0] - origins) * inv
@@ -48,23 +49,26 @@ def box_interval(origins: torch.Tensor, dirs: torch.Tensor, box: torch.Tensor, n
 
 
 def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.Tensor | None = None,
-                background: float = BACKGROUND, far: float | None = None):
+                background: float = BACKGROUND, far=None, view_dirs: torch.Tensor | None = None,
+                near: float = NEAR_T):
     """Luminance ``x [n]`` and opacity ``acc [n]`` of rays, alpha-compositing samples every half voxel.
 
     ``jitter [n]`` in [0, 1) offsets each ray's samples (training); None samples at 0.5.
-    With ``far`` given, a third value: depth ``[n]``, the expected distance along the (unit) ray
-    where it ends, the light that passes through counted at ``far``.
+    With ``far`` given (a number or one per ray ``[n]``), a third value: depth ``[n]``, the expected
+    distance along the (unit) ray where it ends, the light that passes through counted at ``far``.
+    ``view_dirs [n, 3]``: the directions the field's view-dependent term reads (default ``dirs``;
+    rays in NDC pass their world directions). ``near``: samples start this far along each ray.
     Only samples inside the occupied box and in occupied cells are evaluated: they are kept
     packed (sorted by ray) and composited with a segmented cumulative sum, so empty space
     costs neither field queries nor autograd memory.
     """
     n = origins.shape[0]
     step = field.step_ratio * field.voxel
-    idx, ray_of, pts = _occupied_samples(field, origins, dirs, step, jitter)
+    idx, ray_of, pts = _occupied_samples(field, origins, dirs, step, jitter, near=near)
     if idx.numel() == 0:
         zero = origins.new_zeros(n) + 0.0 * field.grid.sum()  # keeps the graph connected
         return (zero + background, zero) if far is None else (zero + background, zero, zero + far)
-    sigma, x = field.query(pts, dirs[ray_of])
+    sigma, x = field.query(pts, (dirs if view_dirs is None else view_dirs)[ray_of])
     log_t = -(sigma * (step / field.ref_voxel)).clamp(max=30.0)  # log(1 - alpha) of each sample
     trans = torch.exp(_exclusive_segment_cumsum(log_t, ray_of, n))
     w = (1 - torch.exp(log_t)) * trans
@@ -79,13 +83,13 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.
 
 
 @torch.no_grad()
-def _occupied_samples(field, origins, dirs, step, jitter, broadcast: bool | None = None):
+def _occupied_samples(field, origins, dirs, step, jitter, broadcast: bool | None = None, near: float = NEAR_T):
     """Packed samples: (flat index [m], ray [m], point [m, 3]), sorted by ray then depth.
 
     ``broadcast``: how candidate points are made (see below); None = chosen by the box's fill.
     """
     n = origins.shape[0]
-    t_in, t_out = box_interval(origins, dirs, field.box)
+    t_in, t_out = box_interval(origins, dirs, field.box, near)
     span = (t_out - t_in).clamp(min=0)
     n_samp = max(1, int(torch.ceil(span.max() / step).item()))
     off = torch.full((n,), 0.5, device=origins.device) if jitter is None else jitter
@@ -120,13 +124,25 @@ def _exclusive_segment_cumsum(v: torch.Tensor, seg: torch.Tensor, n_seg: int) ->
 
 @torch.no_grad()
 def render_image(field, pose: torch.Tensor, height: int, width: int, focal_px, chunk: int = 8192,
-                 far: float | None = None, background: float = BACKGROUND):
+                 far: float | None = None, background: float = BACKGROUND, space=None):
     """Luminance ``[H, W]`` and opacity ``[H, W]`` of a full view (pose ``[4, 4]``; ``focal_px`` as
-    :func:`pixel_rays` takes it), and with ``far`` given, depth ``[H, W]`` too (see :func:`render_rays`)."""
+    :func:`pixel_rays` takes it), and with ``far`` given, depth ``[H, W]`` too (see :func:`render_rays`).
+
+    ``space``: the field's :class:`ndc.NDC` (None: the field is in world coordinates); the rays are
+    then mapped into it, and the depth (with ``far`` given; its value is then unused) is the NDC z
+    where the ray ends, -1 at the near plane to 1 at infinity (light that passes through: 1)."""
     P = height * width
     chunks = []
     for a in range(0, P, chunk):
         pix = torch.arange(a, min(P, a + chunk), device=pose.device)
         o, d = pixel_rays(pose.expand(pix.shape[0], 4, 4), pix, height, width, focal_px)
-        chunks.append(render_rays(field, o, d, background=background, far=far))
+        if space is None:
+            chunks.append(render_rays(field, o, d, background=background, far=far))
+            continue
+        o_ndc, d_ndc, length = space.rays(o, d)
+        maps = render_rays(field, o_ndc, d_ndc, background=background, far=None if far is None else length,
+                           view_dirs=d, near=0.0)
+        if far is not None:  # distance along the NDC ray -> its z
+            maps = (*maps[:2], torch.where(length > 0, o_ndc[:, 2] + maps[2] * d_ndc[:, 2], torch.ones_like(length)))
+        chunks.append(maps)
     return tuple(torch.cat(maps).view(height, width) for maps in zip(*chunks))

@@ -17,7 +17,7 @@ from tqdm import tqdm
 from spikegen.errors import InputError, SpikegenError
 from spikegen.spikeio import atomic_path, remove_stale_parts, write_json_atomic
 
-from . import neuron
+from . import ndc, neuron
 from .config import TrainConfig
 from .data import load_dataset
 from .methods import METHODS
@@ -57,9 +57,22 @@ def grid_schedule(cfg: TrainConfig, width: int) -> list[tuple[int, int]]:
     return [(int(f * cfg.iters), s) for f, s in zip(cfg.upsample_at, sizes)]
 
 
-def make_field(cfg: TrainConfig, width: int) -> GridField:
+SPACES = ("cube", "auto", "ndc")  # TrainConfig.space
+
+
+def make_field(cfg: TrainConfig, width: int, space: ndc.NDC | None = None) -> GridField:
+    """The cube ``[-1.5, 1.5]^3`` in world units; with ``space``, its NDC box, sized as the cube
+    ``[-1, 1]^3`` would be (``grid_start`` points across [-1, 1], cubic voxels, the box's upper
+    corner moved out to the next whole voxel)."""
+    if space is None:
+        return GridField(grid_size=cfg.grid_start, final_size=final_grid(cfg, width), sh_degree=cfg.sh_degree,
+                         sh_scale=cfg.sh_scale)
+    lo, hi = np.array(space.box)
+    voxel = 2.0 / (cfg.grid_start - 1)
+    dims = [int(math.ceil((h - l) / voxel - 1e-6)) + 1 for l, h in zip(lo, hi)]
+    aabb = [lo.tolist(), (lo + voxel * (np.array(dims) - 1)).tolist()]
     return GridField(grid_size=cfg.grid_start, final_size=final_grid(cfg, width), sh_degree=cfg.sh_degree,
-                     sh_scale=cfg.sh_scale)
+                     sh_scale=cfg.sh_scale, bound=1.0, aabb=aabb, dims=dims)
 
 
 def make_optimizer(field: GridField, cfg: TrainConfig):
@@ -170,6 +183,13 @@ def field_from_checkpoint(ck: dict, device) -> GridField:
     return field
 
 
+def checkpoint_space(ck: dict) -> ndc.NDC | None:
+    """The space a checkpoint's field lies in: its :class:`ndc.NDC`, or None for world coordinates
+    (checkpoints without the key, all of those from before NDC existed, are in world coordinates)."""
+    space = ck.get("space")
+    return ndc.NDC.from_json(space) if space else None
+
+
 def checkpoint_camera(ck: dict) -> tuple:
     """(height, width, focal, background) a checkpoint was trained with: ``focal`` a float or
     ``(fl_x, fl_y, cx, cy)`` (render.pixel_rays); checkpoints from before backgrounds were recorded
@@ -183,10 +203,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> No
     # checkpoints from before SH was added have no SH keys: they are degree 0 (the scale is then moot);
     # those from before --frames used every frame of the stream
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
-           "fit_box": False, "lazy_above": 0, **ck["config"]}
+           "fit_box": False, "lazy_above": 0, "space": "cube", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above"):
+                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above", "space"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
@@ -209,24 +229,35 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame)
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
+    space = None  # the world cube (an object on white, or a scene that fills the frame with --space cube)
+    if cfg.space not in SPACES:
+        raise InputError(f"unknown space {cfg.space!r}; one of {', '.join(SPACES)}")
+    if cfg.space != "cube" and not ds.fills_frame:
+        if cfg.space == "ndc":
+            raise InputError(f"{ds.root}: --space ndc is for a scene that fills the frame, not an object on white")
+    elif cfg.space != "cube":  # a scene that fills the frame: NDC if its views all look one way
+        space, why = ndc.for_dataset(ds)
+        if space is None and cfg.space == "ndc":
+            raise InputError(f"{ds.root}: --space ndc: {why}")
+        log(f"{ds.root}: {why}" + ("" if space else "; the field stays in the world cube [-1.5, 1.5]^3"))
     tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None)
     out.mkdir(parents=True, exist_ok=True)  # after every input is read: bad input leaves no run folder
     remove_stale_parts(out)  # a run killed while writing a checkpoint leaves its temporary behind
     ck_path = out / CHECKPOINT
     batch = Batch(tg, device)
     focal = ds.camera(H, W)  # a float (square pixels, centred) or (fl_x, fl_y, cx, cy)
-    field = make_field(cfg, W).to(device)
+    field = make_field(cfg, W, space).to(device)
     opt = make_optimizer(field, cfg)
     schedule = grid_schedule(cfg, W)
-    field, opt, start, train_s = _resume(ck_path, cfg, ds.frames, device, field, opt, log)
+    field, opt, start, train_s, space = _resume(ck_path, cfg, ds.frames, device, field, opt, space, log)
     write_json_atomic(out / "config.json", {**cfg.to_json(), "device_used": str(device), "height": H, "width": W,
                                             "holdout": ds.holdout, "heldout": ds.heldout, "grid_schedule": schedule,
                                             "intensity": ds.intensity})
     if start >= cfg.iters:
         log(f"{out}: already trained ({start} iterations)")
         return ck_path
-    _loop(cfg, method, field, opt, batch, ds.intensity, (H, W, focal, ds.background), schedule, start, train_s, out,
-          progress, stop_at or cfg.iters)
+    _loop(cfg, method, field, opt, batch, ds.intensity, (H, W, focal, ds.background, space), schedule, start,
+          train_s, out, progress, stop_at or cfg.iters)
     return ck_path
 
 
@@ -239,17 +270,18 @@ def _resolution(ds, res: int) -> tuple[int, int]:
     return ds.height // f, res
 
 
-def _resume(ck_path: Path, cfg: TrainConfig, all_frames: int, device, field, opt, log):
-    """(field, optimizer, start iteration, training seconds): from the checkpoint if there is one."""
+def _resume(ck_path: Path, cfg: TrainConfig, all_frames: int, device, field, opt, space, log):
+    """(field, optimizer, start iteration, training seconds, space): from the checkpoint if there is
+    one (its field keeps the space it was made in: one from before NDC existed stays in the world cube)."""
     if not ck_path.is_file():
-        return field, opt, 0, 0.0
+        return field, opt, 0, 0.0, space
     ck = load_checkpoint(ck_path, device)
     _check_resume(ck, cfg, ck_path, all_frames)
     field = field_from_checkpoint(ck, device)
     opt = make_optimizer(field, cfg)
     opt.load_state_dict(ck["optimizer"])
     log(f"resuming from {ck_path} at iteration {int(ck['iteration'])}")
-    return field, opt, int(ck["iteration"]), float(ck["train_seconds"])
+    return field, opt, int(ck["iteration"]), float(ck["train_seconds"]), checkpoint_space(ck)
 
 
 def _frames(ds, frames: int | None) -> int:
@@ -262,9 +294,11 @@ def _frames(ds, frames: int | None) -> int:
 
 
 def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress, stop_at):
-    H, W, focal, background = cam
+    H, W, focal, background, space = cam
     ck_path = out / CHECKPOINT
     extra = {"height": H, "width": W, "focal_px": focal, "intensity": intensity, "background": background}
+    if space is not None:  # no key: world coordinates (as every checkpoint from before NDC)
+        extra["space"] = space.to_json()
     last_save, save_s = time.perf_counter(), 0.0  # save_s: how long the last save took
     bar = tqdm(range(start, cfg.iters), initial=start, total=cfg.iters, desc=f"train {cfg.method}",
                disable=not progress, unit="it")
@@ -278,7 +312,11 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         gen = iteration_generator(cfg.seed, it)
         img, pix, jitter = batch.draw(cfg.batch_rays, gen)
         o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
-        x, _ = render_rays(field, o, d, jitter, background)  # the composite the sensor model sees
+        if space is None:
+            x, _ = render_rays(field, o, d, jitter, background)  # the composite the sensor model sees
+        else:  # sampled uniformly in NDC from the near plane; the view-dependent term reads world directions
+            o_ndc, d_ndc, _ = space.rays(o, d)
+            x, _ = render_rays(field, o_ndc, d_ndc, jitter, background, view_dirs=d, near=0.0)
         loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
         if cfg.tv_weight > 0:
             tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)

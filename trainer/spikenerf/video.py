@@ -22,6 +22,18 @@ Camera paths (world +Z up, every camera looking at the origin; frame ``k`` of ``
 ``r`` is the median distance from the origin of the run's dataset's training cameras (4.0311
 for NeRF-synthetic scenes), or :data:`spikegen.camera.RADIUS` where that folder is no longer
 readable.
+
+A run whose field lies in NDC (a forward-facing capture, ndc.py) has its own paths, about its
+reference camera (as LLFF renderings are), each camera turned as the reference camera, ``r`` the
+checkpoint's ``spread`` (the median distance of the training cameras from the reference centre):
+
+- ``orbit``: the circle of radius ``r`` about the reference centre in its image plane (angle
+  ``360 s`` degrees from its right axis towards its up axis);
+- ``spiral``: that circle twice (``720 s`` degrees), moving forward along the viewing axis by
+  ``r (1 - cos(2 pi s)) / 2`` (out to ``r`` and back).
+
+Their depth panel is the NDC z where the ray ends (render.render_image), yellow at -1 (the near
+plane) to dark purple at 1 (infinity, where light that passes through counts).
 """
 from __future__ import annotations
 
@@ -38,7 +50,8 @@ from spikegen.spikeio import linear_to_srgb
 
 from .data import load_dataset
 from .render import render_image
-from .train import CHECKPOINT, checkpoint_camera, field_from_checkpoint, load_checkpoint, resolve_device
+from .train import (CHECKPOINT, checkpoint_camera, checkpoint_space, field_from_checkpoint, load_checkpoint,
+                    resolve_device)
 
 PATHS = ("orbit", "spiral")
 ORBIT_ELEVATION_DEG = 30.0
@@ -64,6 +77,19 @@ def path_poses(path: str, frames: int, radius: float) -> np.ndarray:
     return np.stack([look_at(c) for c in centres])
 
 
+def ndc_path_poses(path: str, frames: int, space) -> np.ndarray:
+    """Camera-to-world poses ``float64 [frames, 4, 4]`` of ``path`` about an NDC run's reference camera."""
+    s = np.arange(frames) / frames
+    ref, r = np.array(space.pose), space.spread
+    turns = 1 if path == "orbit" else 2
+    ang = 2 * np.pi * turns * s
+    forward = np.zeros(frames) if path == "orbit" else r * (1 - np.cos(2 * np.pi * s)) / 2
+    out = np.repeat(ref[None], frames, axis=0)
+    out[:, :3, 3] += (r * np.cos(ang))[:, None] * ref[:3, 0] + (r * np.sin(ang))[:, None] * ref[:3, 1] \
+        - forward[:, None] * ref[:3, 2]
+    return out
+
+
 def camera_radius(dataset, log=print) -> float:
     """Median distance from the origin of the dataset's training cameras; ``RADIUS`` if unreadable."""
     try:
@@ -82,13 +108,14 @@ def depth_colours(depth: np.ndarray, near: float = NEAR, far: float = FAR) -> np
     return np.round(rgb).astype(np.uint8)
 
 
-def frame_panels(lum: np.ndarray, acc: np.ndarray, depth: np.ndarray) -> np.ndarray:
-    """``uint8 [H, 3 W + 2 GAP_PX, 3]``: luminance | depth | opacity of one view (each ``[H, W]``)."""
+def frame_panels(lum: np.ndarray, acc: np.ndarray, depth: np.ndarray, near: float = NEAR, far: float = FAR) -> np.ndarray:
+    """``uint8 [H, 3 W + 2 GAP_PX, 3]``: luminance | depth | opacity of one view (each ``[H, W]``;
+    depth coloured from ``near`` to ``far``)."""
     grey = [np.clip(np.round(v * 255.0), 0, 255).astype(np.uint8)
             for v in (linear_to_srgb(np.clip(lum, 0.0, 1.0)), np.clip(acc, 0.0, 1.0))]
     lum_rgb, acc_rgb = (np.repeat(g[..., None], 3, axis=2) for g in grey)
     gap = np.full((lum.shape[0], GAP_PX, 3), 255, dtype=np.uint8)
-    return np.concatenate([lum_rgb, gap, depth_colours(depth), gap, acc_rgb], axis=1)
+    return np.concatenate([lum_rgb, gap, depth_colours(depth, near, far), gap, acc_rgb], axis=1)
 
 
 def render_video(run, path: str, frames: int, out, fps: float = 20.0, device: str = "auto",
@@ -106,13 +133,17 @@ def render_video(run, path: str, frames: int, out, fps: float = 20.0, device: st
     dev = resolve_device(device)
     ck = load_checkpoint(ck_path, dev)
     field = field_from_checkpoint(ck, dev).eval()
-    poses = path_poses(path, frames, camera_radius(ck["config"]["dataset"], log))
+    space = checkpoint_space(ck)
+    if space is None:
+        poses, depth_range = path_poses(path, frames, camera_radius(ck["config"]["dataset"], log)), (NEAR, FAR)
+    else:  # about the reference camera; depth as NDC z
+        poses, depth_range = ndc_path_poses(path, frames, space), (-1.0, 1.0)
     H, W, focal, background = checkpoint_camera(ck)
 
     def views():
         for pose in tqdm(poses, desc=f"render {path}", unit="frame", disable=not progress):
             maps = render_image(field, torch.as_tensor(pose, dtype=torch.float32, device=dev), H, W, focal, far=FAR,
-                                background=background)
-            yield frame_panels(*(m.cpu().numpy() for m in maps))
+                                background=background, space=space)
+            yield frame_panels(*(m.cpu().numpy() for m in maps), *depth_range)
 
     return write_animation(out, views(), fps)
