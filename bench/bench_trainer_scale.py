@@ -20,6 +20,7 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--sparse]     # the lazy grid optimiser (off by default in the trainer)
         [--converge]   # also 3 x the iterations at both resolutions: is the 1 x run converged?
         [--json FILE]  # the rows and the load averages, for the record
+    python bench/bench_trainer_scale.py --table FILE   # the table of a saved --json file again
 """
 from __future__ import annotations
 
@@ -66,11 +67,11 @@ def run_child(args, resolution: int, iters: int, out: Path) -> dict:
 
 def table(rows: list[dict]) -> None:
     print(f"{'run':>10} {'iters':>6} {'train s':>8} {'eval s':>7} {'views':>5} {'peak RSS MB':>11} "
-          f"{'checkpoint MB':>13} {'PSNR':>6} {'object':>6}")
+          f"{'checkpoint MB':>13} {'PSNR':>6} {'object':>6} {'load at end':>11}")
     for r in rows:
         print(f"{r['resolution']:>4} x {r['resolution']:<3} {r['iters']:>6} {r['train_s']:>8.1f} {r['eval_s']:>7.1f} "
               f"{r['views']:>5} {r['peak_rss_mb']:>11.0f} {r['checkpoint_mb']:>13.1f} {r['psnr']:>6.2f} "
-              f"{r['psnr_object']:>6.2f}")
+              f"{r['psnr_object']:>6.2f} {r.get('load_after', float('nan')):>11.2f}")
     a, b = rows[0], rows[1]
     ratio = b["train_s"] / a["train_s"]
     print(f"training time ratio {b['resolution']}/{a['resolution']} at {a['iters']} iterations: {ratio:.2f} "
@@ -89,15 +90,24 @@ def table(rows: list[dict]) -> None:
 
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    ap.add_argument("dataset", help="a 400 x 400 spike dataset (spikegen convert ... --sensor rsir)")
+    ap.add_argument("dataset", nargs="?", help="a 400 x 400 spike dataset (spikegen convert ... --sensor rsir)")
     ap.add_argument("--iters", type=int, default=3000)
     ap.add_argument("--eval-views", type=int, default=None, help="evaluate the first N held-out views (default all)")
     ap.add_argument("--out", type=Path, default=None, help="runs go here (default: a temporary folder)")
     ap.add_argument("--sparse", action="store_true", help="grids above 128^3 train with the lazy optimiser")
     ap.add_argument("--converge", action="store_true", help="also train both resolutions with 3 x --iters")
     ap.add_argument("--json", type=Path, default=None, help="write the rows and load averages to this file")
+    ap.add_argument("--table", type=Path, default=None, help="print the table of a saved --json file and stop")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
+    if args.table:
+        saved = json.loads(args.table.read_text())
+        print(f"{saved['dataset']}; OMP_NUM_THREADS={saved['omp_threads']}; load average at start "
+              f"{' '.join(f'{x:.2f}' for x in saved['load_start'])}, at end {' '.join(f'{x:.2f}' for x in saved['load_end'])}")
+        table(saved["rows"])
+        return
+    if not args.dataset:
+        ap.error("a dataset is needed (or --table FILE)")
     if args.child:
         print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse)))
         return
@@ -113,8 +123,9 @@ def main() -> None:
         rows = []
         for res, iters in plan:
             rows.append(run_child(args, res, iters, base / f"run{res}_{iters}"))
+            rows[-1]["load_after"] = round(os.getloadavg()[0], 2)  # the 1-minute load as the run ended
             print(f"  {res} x {res}, {iters} iterations: {rows[-1]['train_s']:.0f} s, object PSNR "
-                  f"{rows[-1]['psnr_object']:.2f} (load {os.getloadavg()[0]:.2f})", flush=True)
+                  f"{rows[-1]['psnr_object']:.2f} (load {rows[-1]['load_after']:.2f})", flush=True)
     load1 = os.getloadavg()
     print(f"load average at end: {' '.join(f'{x:.2f}' for x in load1)}")
     table(rows)
