@@ -9,7 +9,7 @@ import click
 
 from spikegen.errors import SpikegenError
 
-from .config import TrainConfig
+from .config import SPACES, TrainConfig
 from .methods import DEFAULT_METHOD, METHODS
 
 
@@ -59,7 +59,7 @@ def main():
 @click.option("--fit-box/--no-fit-box", default=TrainConfig.fit_box, show_default=True,
               help="Crop the grid to the box the object occupies before each growth (an object on white; a "
                    "scene that fills the frame keeps the whole box).")
-@click.option("--space", type=click.Choice(["cube", "auto", "ndc"]), default=TrainConfig.space, show_default=True,
+@click.option("--space", type=click.Choice(SPACES), default=TrainConfig.space, show_default=True,
               help="The field's space for a scene that fills the frame (an imported capture): the world cube, "
                    "NDC (views facing one way), or auto (NDC where it applies). Objects on white use the cube.")
 @click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),

@@ -7,6 +7,9 @@ from dataclasses import dataclass
 from .methods import DEFAULT_METHOD
 
 
+SPACES = ("cube", "auto", "ndc")  # TrainConfig.space
+
+
 @dataclass(frozen=True)
 class TrainConfig:
     dataset: str

@@ -120,8 +120,8 @@ class LazyGridAdam:
             w = self._drift(last).to(m.device)
             safe = v > 0
             p.sub_(torch.where(safe, m / v.clamp(min=1e-38).sqrt(), torch.zeros_like(m)) * w)
-            m.mul_(torch.pow(torch.tensor(b1, device=m.device), missed))
-            v.mul_(torch.pow(torch.tensor(b2, device=m.device), missed))
+            m.mul_(torch.pow(b1, missed))
+            v.mul_(torch.pow(b2, missed))
         m.lerp_(g, 1 - b1)
         v.mul_(b2).addcmul_(g, g, value=1 - b2)
         self.exp_avg[i].index_copy_(1, idx, m)

@@ -18,7 +18,7 @@ from spikegen.errors import InputError, SpikegenError
 from spikegen.spikeio import atomic_path, remove_stale_parts, write_json_atomic
 
 from . import ndc, neuron
-from .config import TrainConfig
+from .config import SPACES, TrainConfig
 from .data import load_dataset
 from .methods import METHODS
 from .model import GridField
@@ -55,9 +55,6 @@ def grid_schedule(cfg: TrainConfig, width: int) -> list[tuple[int, int]]:
     n = len(cfg.upsample_at)
     sizes = [int(round(cfg.grid_start * (G / cfg.grid_start) ** ((i + 1) / n))) for i in range(n)]
     return [(int(f * cfg.iters), s) for f, s in zip(cfg.upsample_at, sizes)]
-
-
-SPACES = ("cube", "auto", "ndc")  # TrainConfig.space
 
 
 def make_field(cfg: TrainConfig, width: int, space: ndc.NDC | None = None) -> GridField:
@@ -232,10 +229,9 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     space = None  # the world cube (an object on white, or a scene that fills the frame with --space cube)
     if cfg.space not in SPACES:
         raise InputError(f"unknown space {cfg.space!r}; one of {', '.join(SPACES)}")
-    if cfg.space != "cube" and not ds.fills_frame:
-        if cfg.space == "ndc":
-            raise InputError(f"{ds.root}: --space ndc is for a scene that fills the frame, not an object on white")
-    elif cfg.space != "cube":  # a scene that fills the frame: NDC if its views all look one way
+    if cfg.space == "ndc" and not ds.fills_frame:
+        raise InputError(f"{ds.root}: --space ndc is for a scene that fills the frame, not an object on white")
+    if cfg.space != "cube" and ds.fills_frame:  # NDC if its views all look one way
         space, why = ndc.for_dataset(ds)
         if space is None and cfg.space == "ndc":
             raise InputError(f"{ds.root}: --space ndc: {why}")
