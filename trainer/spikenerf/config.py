@@ -14,7 +14,7 @@ SPACES = ("cube", "auto", "ndc")  # TrainConfig.space
 class TrainConfig:
     dataset: str
     method: str = DEFAULT_METHOD
-    iters: int = 3000
+    iters: int = 0  # 0 = chosen from the image size (train.default_iters)
     device: str = "auto"
     resolution: int = 0  # 0 = the dataset's
     frames: int | None = None  # train from the first w frames of each stream; None = all (resolved when training)

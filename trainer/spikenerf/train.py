@@ -45,6 +45,20 @@ def resolve_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+# The default iteration count at two image sizes, chosen on the project's procedural lego (spikelik,
+# i64, 48 train views, scored on its 8 val views; docs/trainer.md "Iterations"), never on the real
+# lego's views: the best measured count at 100 x 100 and at 400 x 400. Between them it is
+# interpolated in log pixels; outside, the nearer one holds.
+ITERS_AT = ((100 * 100, 3000), (400 * 400, 9000))
+
+
+def default_iters(height: int, width: int) -> int:
+    """``--iters 0``: the iterations for an image of this size (ITERS_AT), a multiple of 100."""
+    (p0, n0), (p1, n1) = ITERS_AT
+    t = min(1.0, max(0.0, math.log(height * width / p0) / math.log(p1 / p0)))
+    return int(round(n0 * (n1 / n0) ** t / 100)) * 100
+
+
 def final_grid(cfg: TrainConfig, width: int) -> int:
     return cfg.grid_final or int(min(256, max(32, round(1.28 * width / 8) * 8)))
 
@@ -216,14 +230,15 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     """
     if cfg.method not in METHODS:
         raise InputError(f"unknown --method {cfg.method!r}; expected one of {', '.join(METHODS)}")
-    if cfg.iters < 1:
-        raise InputError(f"--iters must be >= 1, got {cfg.iters}")
+    if cfg.iters < 0:
+        raise InputError(f"--iters must be >= 0 (0 = chosen from the image size), got {cfg.iters}")
     device = resolve_device(cfg.device)
     method = METHODS[cfg.method]
     ds = load_dataset(cfg.dataset)
     H, W = _resolution(ds, cfg.resolution)
     # the fitted box is for an object on white; a scene that fills the frame (an imported capture) keeps its box
-    cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame)
+    cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame,
+                              iters=cfg.iters or default_iters(H, W))
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
     space = None  # the world cube (an object on white, or a scene that fills the frame with --space cube)
