@@ -38,7 +38,8 @@ under each model's simulation) by more than a penalty; only the kept ones are re
 "heldout" is the score of the baseline and of the extended sensor; "unexplained" lists the
 held-out statistics the extended sensor does not reproduce (:mod:`.unexplained`); "baseline",
 "extended" and "gain" are the named discrepancy measures (stats.MEASURES) of each model on
-the held-out frames. With ``self`` only static pixels (heldout.static_pixels) are judged.
+the held-out frames. With ``self`` only static pixels (heldout.motion_test) are judged: pixels
+tested for a change of rate that show none; "untested_pixels" had too few spikes to be tested.
 
 The steps are separate modules, each returning frozen records (:mod:`.records`):
 :mod:`.ratefit` (flicker, the rate model), :mod:`.structure` (per-pixel structure),
@@ -123,7 +124,8 @@ def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | 
     n_static = int(ctx.static.sum())
     info = {"frames": T, "fit_frames": ctx.Tf, "held_out_frames": T - ctx.Tf, "height": H, "width": W,
             "intensity": ctx.intensity, "reference": "self" if ctx.self_ref else f"{ctx.X.shape[0]} sub-frame(s)",
-            "baseline_sensor": baseline.name, "static_pixels": n_static, "moving_pixels": H * W - n_static}
+            "baseline_sensor": baseline.name, "static_pixels": n_static,
+            "moving_pixels": H * W - n_static - ctx.untested, "untested_pixels": ctx.untested}
     return Diagnosis(effects, extended, bm, em, fit=fit, info=info, heldout=held["doc"],
                      unexplained=held["unexplained"], static=ctx.static.reshape(H, W))
 
@@ -218,9 +220,9 @@ def _context(spikes, radiance, intensity: float, baseline: Sensor, Tf: int) -> C
         if X.ndim != 3 or X.shape[1:] != (H, W):
             raise InputError(f"reference radiance is {X.shape[-1]}x{X.shape[-2]}, the stream is {W}x{H}")
     Rb, db = baseline.maps(H, W)
-    static = heldout.static_pixels(spikes) if self_ref else np.ones(H * W, dtype=bool)
+    static, tested = heldout.motion_test(spikes) if self_ref else (np.ones(H * W, dtype=bool),) * 2
     return Context(spikes, X, intensity, baseline, Tf, meas, halves, self_ref, Rb.reshape(-1), db.reshape(-1),
-                   constant_interval_fraction(meas), static)
+                   constant_interval_fraction(meas), static, int((~tested).sum()))
 
 
 def _self_radiance(rate, intensity, baseline, H, W):

@@ -110,6 +110,7 @@ class Context:
     db: np.ndarray  # [P] the baseline's dark rate, spikes per frame
     constant_fraction: float  # of pixels whose intervals never vary (noise-free reset to zero)
     static: np.ndarray | None = None  # [P] bool, pixels whose rate does not change (all with a reference)
+    untested: int = 0  # pixels with too few spikes to be tested for a change of rate ('self' only)
 
     @property
     def shape(self) -> tuple:
