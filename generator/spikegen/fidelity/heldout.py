@@ -151,12 +151,14 @@ def count_variance(simulated: np.ndarray, w: int, static_reference: bool,
 
 
 def score(measured: np.ndarray, simulated: np.ndarray, sim_stats: stats.PixelStats, mask: np.ndarray,
-          static_reference: bool, modulation: Modulation | None = None) -> HeldOutScore:
+          static_reference: bool, modulation: Modulation | None = None, measured_stats: tuple | None = None
+          ) -> HeldOutScore:
     """The held-out score of ``measured [Th, H, W]`` under ``simulated [T, H, W]`` (the whole run,
     whose last ``Th`` frames are the held-out ones) with interval statistics ``sim_stats``;
-    pixels ``mask [P]``; ``modulation``: the model's (None: none)."""
+    pixels ``mask [P]``; ``modulation``: the model's (None: none); ``measured_stats``: the
+    ``(stats.pixel_stats, stats.interval_pixels)`` of ``measured`` if already computed."""
     if modulation is None:
-        per_pixel = _interval_loglik(measured, sim_stats)
+        per_pixel = _interval_loglik(measured, sim_stats, measured_stats)
     else:
         per_pixel = _clock_interval_loglik(measured, simulated, modulation)
     lengths = window_lengths(measured.shape[0])
@@ -188,12 +190,11 @@ def _count_loglik(measured, simulated, sim_stats, mask, w: int, static_reference
     return (-0.5 * (np.log(2 * np.pi * v) + (c - m) ** 2 / v)).sum(axis=0)
 
 
-def _interval_loglik(measured, sim_stats: stats.PixelStats) -> np.ndarray:
+def _interval_loglik(measured, sim_stats: stats.PixelStats, measured_stats: tuple | None = None) -> np.ndarray:
     """``[P]`` summed log density of the held-out intervals under a Gaussian of the simulated
     interval mean and variance (with the mean's sampling error, at least :data:`VAR_FLOOR`)."""
     P = sim_stats.n.size
-    ps = stats.pixel_stats(measured)
-    pix = stats.interval_pixels(measured)
+    ps, pix = measured_stats or (stats.pixel_stats(measured), stats.interval_pixels(measured))
     n = np.maximum(sim_stats.n_isi, 1)
     mu = np.where(np.isfinite(sim_stats.isi_mean), sim_stats.isi_mean, measured.shape[0] + 1.0)
     var = np.maximum(np.nan_to_num(sim_stats.isi_var, nan=0.0) * (1.0 + 1.0 / n), VAR_FLOOR)

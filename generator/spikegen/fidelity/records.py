@@ -111,6 +111,7 @@ class Context:
     constant_fraction: float  # of pixels whose intervals never vary (noise-free reset to zero)
     static: np.ndarray | None = None  # [P] bool, pixels whose rate does not change (all with a reference)
     untested: int = 0  # pixels with too few spikes to be tested for a change of rate ('self' only)
+    cache: dict = field(default_factory=dict)  # statistics computed once per diagnosis (diagnose._held_stats)
 
     @property
     def shape(self) -> tuple:
