@@ -6,15 +6,16 @@
     python bench/bench_diagnose.py --height 250 --width 400 --frames 2000   # any other size
 
 The recording is simulated (seeded) with gain nonuniformity, dark current and shot noise
-(spikegen.fidelity.synth; N_e = 300 for `small`, 2000 for `second`, whose 2 * 10^9 pixel-frames
-would take the exact-Poisson path for minutes otherwise) and written as .npz with its reference
-radiance as .npy. `spikegen diagnose` then runs in a child process, so that its peak RSS
-(`RUSAGE_CHILDREN`) is its own; the child is stopped when its resident memory passes
---limit-mib (default: the target's 4096 for `second`, none otherwise) or when it runs past
---timeout seconds, and the bench says so. Prints the wall time of the diagnosis, its peak RSS,
-the time of the one simulation that made the recording (a yardstick measured in the same run:
-the diagnosis simulates the recording several times itself) and the load average before and
-after, since the machine may be shared.
+(spikegen.fidelity.synth; N_e = 300 for `small`; 2000 for `second`, where no pixel gets fewer
+than 30 photo-electrons a frame, so the simulator never takes its slow exact-Poisson path over
+the 2 * 10^9 pixel-frames) and written as .npz with its reference radiance as .npy.
+`spikegen diagnose` then runs in a child process, so that its peak RSS (`RUSAGE_CHILDREN`) is
+its own; the child is stopped when its resident memory passes --limit-mib (default: the
+target's 4096 for `second`, none otherwise) or when it runs past --timeout seconds, and the
+bench says so. Prints the wall time of the diagnosis, its CPU time (user + system, all its
+threads), its peak RSS, the time of the one simulation that made the recording (a yardstick
+measured in the same run: the diagnosis simulates the recording several times itself) and the
+load average before and after, since the machine may be shared.
 """
 from __future__ import annotations
 
@@ -65,8 +66,8 @@ def _rss_mib(pid: int) -> float:
     return 0.0
 
 
-def run_diagnose(folder: Path, limit_mib: float | None, timeout: float) -> tuple[str, float, float]:
-    """``(outcome, wall seconds, peak RSS MiB)`` of `spikegen diagnose` in a child process."""
+def run_diagnose(folder: Path, limit_mib: float | None, timeout: float) -> tuple[str, float, float, float]:
+    """``(outcome, wall seconds, peak RSS MiB, CPU seconds)`` of `spikegen diagnose` in a child process."""
     code = ("import sys; from spikegen.cli import main; sys.exit(main(sys.argv[1:]))")
     args = [sys.executable, "-c", code, "diagnose", str(folder / "m.npz"), "--reference", str(folder / "ref.npy"),
             "--intensity", "96", "--json", str(folder / "d.json")]
@@ -89,10 +90,14 @@ def run_diagnose(folder: Path, limit_mib: float | None, timeout: float) -> tuple
     child.wait()
     wall = time.perf_counter() - t0
     err = err_path.read_text(errors="replace")
-    peak = resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss / 1024.0
+    usage = resource.getrusage(resource.RUSAGE_CHILDREN)
+    peak, cpu = usage.ru_maxrss / 1024.0, usage.ru_utime + usage.ru_stime
     if outcome is None:
         outcome = "ok" if child.returncode == 0 else f"exit {child.returncode}: {(err.strip().splitlines() or [''])[-1]}"
-    return outcome, wall, peak
+    else:  # the diagnosis' progress bar (stderr) says which step it had reached
+        bars = [b.strip() for b in err.replace("\n", "\r").split("\r") if "diagnose" in b]
+        outcome += f" (progress: {bars[-1]})" if bars else " (before its first step)"
+    return outcome, wall, peak, cpu
 
 
 def main(argv=None) -> None:
@@ -110,9 +115,10 @@ def main(argv=None) -> None:
     with tempfile.TemporaryDirectory() as tmp:
         sim_s = make_recording(H, W, T, electrons, Path(tmp))
         load0 = os.getloadavg()
-        outcome, wall, peak = run_diagnose(Path(tmp), limit, args.timeout)
+        outcome, wall, peak, cpu = run_diagnose(Path(tmp), limit, args.timeout)
         load1 = os.getloadavg()
-    print(f"diagnose {H}x{W}x{T} (N_e {electrons:g}): {outcome}; {wall:.1f} s, peak RSS {peak:.0f} MiB; "
+    print(f"diagnose {H}x{W}x{T} (N_e {electrons:g}): {outcome}; {wall:.1f} s ({cpu:.1f} s of CPU), "
+          f"peak RSS {peak:.0f} MiB; "
           f"one simulation of the recording {sim_s:.1f} s (diagnosis / simulation {wall / sim_s:.1f}); "
           f"cores {os.cpu_count()}; load average before {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}, "
           f"after {load1[0]:.2f} {load1[1]:.2f} {load1[2]:.2f}")
