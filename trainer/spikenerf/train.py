@@ -23,7 +23,7 @@ from .data import load_dataset
 from .methods import METHODS
 from .model import GridField
 from .optim import LazyGridAdam
-from .render import BACKGROUND, pixel_rays, render_rays
+from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
 from .targets import Targets, build_targets
 
 CHECKPOINT = "checkpoint.pt"
@@ -310,9 +310,8 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
         if space is None:
             x, _ = render_rays(field, o, d, jitter, background)  # the composite the sensor model sees
-        else:  # sampled uniformly in NDC from the near plane; the view-dependent term reads world directions
-            o_ndc, d_ndc, _ = space.rays(o, d)
-            x, _ = render_rays(field, o_ndc, d_ndc, jitter, background, view_dirs=d, near=0.0)
+        else:  # sampled uniformly in NDC from the near plane, composited as evaluation and rendering do
+            (x, _), _ = render_ndc_rays(field, space, o, d, jitter, background)
         loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
         if cfg.tv_weight > 0:
             tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)
