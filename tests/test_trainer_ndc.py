@@ -220,9 +220,9 @@ def test_a_checkpoint_from_before_ndc_resumes_and_evaluates_in_the_world_cube(ca
     assert evaluate(old, device="cpu", progress=False)["psnr"] == evaluate(whole, device="cpu", progress=False)["psnr"]
 
 
-def test_the_cube_stays_the_default_and_ndc_is_refused_where_it_does_not_apply(capture, dataset, tmp_path):
-    """NDC is opt-in (--space ndc|auto): by default a forward capture trains in the world cube; asked
-    for an object on white, or for views that do not face one way, it is one clear error, no run."""
+def test_the_cube_on_request_and_ndc_is_refused_where_it_does_not_apply(capture, dataset, tmp_path):
+    """With --space cube a forward capture trains in the world cube; NDC asked for an object on white,
+    or for a run whose checkpoint is in the cube, is one clear error, no run."""
     msgs = []
     train(_cfg(capture, iters=2, space="cube"), tmp_path / "cube", progress=False, log=msgs.append)
     assert "space" not in torch.load(tmp_path / "cube" / "checkpoint.pt", weights_only=False)
@@ -240,8 +240,8 @@ def _sky_capture(root, views: int = 20):
     that depends on the ray's direction alone (content at infinity, as a far background is in NDC)."""
     rng = np.random.default_rng(7)
     s = (np.arange(SUPER) + 0.5) / SUPER
-    col, row = np.arange(W)[None, :, None, None] + s[None, None, None, :], np.arange(H)[:, None, None, None] + s[
-        None, None, :, None]
+    col = np.arange(W)[None, :, None, None] + s[None, None, None, :]
+    row = np.arange(H)[:, None, None, None] + s[None, None, :, None]
     records = []
     for i, pose in enumerate(_poses(views, rng)):
         d = np.stack(np.broadcast_arrays((col - K.cx) / K.fl_x, -(row - K.cy) / K.fl_y, -np.ones(1)), -1)
@@ -286,3 +286,23 @@ def test_a_space_saved_before_the_opaque_infinity_reads_without_it():
     assert ndc.NDC.from_json(old) == _space() and not _space().opaque_infinity
     on = dataclasses.replace(_space(), opaque_infinity=True)
     assert ndc.NDC.from_json(json.loads(json.dumps(on.to_json()))) == on
+
+
+def test_auto_is_the_default_ndc_for_a_forward_capture_the_cube_for_an_object_on_white(capture, dataset, tmp_path):
+    """Without flags a forward-facing capture trains in NDC and a synthetic object on white in the world
+    cube; a run made in the cube with --space cube resumes under the default in the cube."""
+    assert TrainConfig(dataset="x").space == "auto"
+    res = CliRunner().invoke(main, ["train", str(capture), "--iters", "2", "--batch-rays", "64", "--device", "cpu",
+                                    "--out", str(tmp_path / "fwd"), "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert torch.load(tmp_path / "fwd" / "checkpoint.pt", weights_only=False)["space"]["kind"] == "ndc"
+    res = CliRunner().invoke(main, ["train", str(dataset), "--iters", "2", "--batch-rays", "64", "--device", "cpu",
+                                    "--out", str(tmp_path / "obj"), "--quiet"])
+    assert res.exit_code == 0, res.output
+    ck = torch.load(tmp_path / "obj" / "checkpoint.pt", weights_only=False)
+    assert "space" not in ck and ck["field"]["aabb"] == [[-1.5] * 3, [1.5] * 3]
+    train(_cfg(capture, iters=4, space="cube"), tmp_path / "cube", progress=False, log=lambda m: None, stop_at=2)
+    msgs = []
+    train(_cfg(capture, iters=4, space="auto"), tmp_path / "cube", progress=False, log=msgs.append)
+    ck = torch.load(tmp_path / "cube" / "checkpoint.pt", weights_only=False)
+    assert any("resuming" in m for m in msgs) and ck["iteration"] == 4 and "space" not in ck

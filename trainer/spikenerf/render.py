@@ -91,8 +91,9 @@ def render_ndc_rays(field, space, origins: torch.Tensor, dirs: torch.Tensor, jit
 
     With ``space.opaque_infinity`` the ray ends in an opaque sample at its point at infinity (as NeRF's
     last sample, whose interval reaches to infinity): the light that passes through the grid takes the
-    field's luminance at that point (on the grid's far face, z = 1; its x, y clamped into the grid's box
-    for a ray that ends beyond it) instead of the background. The far face thus holds a learned
+    field's luminance at that point (z = 1), clamped into the grid's box (a ray that ends beyond its x, y
+    range; the box's far face, which the grid's growth may move by up to half a voxel), instead of the
+    background. The far face thus holds a learned
     luminance per direction. A ray that does not point forward (NDC length 0) keeps ``background``.
     Training and rendering both composite through this function, so they agree."""
     o_ndc, d_ndc, length = space.rays(origins, dirs)

@@ -203,10 +203,16 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> No
            "fit_box": False, "lazy_above": 0, "space": "cube", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above", "space"):
+                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
+    # the space: a resumed run keeps its checkpoint's; "auto" takes it, "cube" and "ndc" must name it
+    made_in = "ndc" if ck.get("space") else "cube"
+    if new["space"] != "auto" and new["space"] != made_in:
+        raise InputError(f"{path}: checkpoint was made with space={old['space']!r} (its field is in "
+                         f"{'NDC' if ck.get('space') else 'the world cube'}), this run asks {new['space']!r}; "
+                         f"use another --out or the same settings")
 
 
 def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at: int | None = None) -> Path:
@@ -226,7 +232,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame)
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
-    space = None  # the world cube (an object on white, or a scene that fills the frame with --space cube)
+    space = None  # the world cube (an object on white, --space cube, or views that do not all face one way)
     if cfg.space not in SPACES:
         raise InputError(f"unknown space {cfg.space!r}; one of {', '.join(SPACES)}")
     if cfg.space == "ndc" and not ds.fills_frame:
