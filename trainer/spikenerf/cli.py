@@ -61,7 +61,8 @@ def main():
                    "scene that fills the frame keeps the whole box).")
 @click.option("--space", type=click.Choice(SPACES), default=TrainConfig.space, show_default=True,
               help="The field's space for a scene that fills the frame (an imported capture): the world cube, "
-                   "NDC (views facing one way), or auto (NDC where it applies). Objects on white use the cube.")
+                   "NDC (views facing one way), or auto (NDC where it applies, else the cube). Objects on white "
+                   "use the cube.")
 @click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),
               help="Weight of the total-variation (smoothness) prior on the grids.")
 @click.option("--tv-points", default=TrainConfig.tv_points, show_default=True, type=click.IntRange(min=0),

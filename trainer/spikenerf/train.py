@@ -23,7 +23,7 @@ from .data import load_dataset
 from .methods import METHODS
 from .model import GridField
 from .optim import LazyGridAdam
-from .render import BACKGROUND, pixel_rays, render_rays
+from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
 from .targets import Targets, build_targets
 
 CHECKPOINT = "checkpoint.pt"
@@ -217,10 +217,16 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> No
            "fit_box": False, "lazy_above": 0, "space": "cube", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above", "space"):
+                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
+    # the space: a resumed run keeps its checkpoint's; "auto" takes it, "cube" and "ndc" must name it
+    made_in = "ndc" if ck.get("space") else "cube"
+    if new["space"] != "auto" and new["space"] != made_in:
+        raise InputError(f"{path}: checkpoint was made with space={old['space']!r} (its field is in "
+                         f"{'NDC' if ck.get('space') else 'the world cube'}), this run asks {new['space']!r}; "
+                         f"use another --out or the same settings")
 
 
 def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at: int | None = None) -> Path:
@@ -241,7 +247,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
                               iters=cfg.iters or default_iters(H, W))
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
-    space = None  # the world cube (an object on white, or a scene that fills the frame with --space cube)
+    space = None  # the world cube (an object on white, --space cube, or views that do not all face one way)
     if cfg.space not in SPACES:
         raise InputError(f"unknown space {cfg.space!r}; one of {', '.join(SPACES)}")
     if cfg.space == "ndc" and not ds.fills_frame:
@@ -325,9 +331,8 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
         if space is None:
             x, _ = render_rays(field, o, d, jitter, background)  # the composite the sensor model sees
-        else:  # sampled uniformly in NDC from the near plane; the view-dependent term reads world directions
-            o_ndc, d_ndc, _ = space.rays(o, d)
-            x, _ = render_rays(field, o_ndc, d_ndc, jitter, background, view_dirs=d, near=0.0)
+        else:  # sampled uniformly in NDC from the near plane, composited as evaluation and rendering do
+            (x, _), _ = render_ndc_rays(field, space, o, d, jitter, background)
         loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
         if cfg.tv_weight > 0:
             tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)
