@@ -6,13 +6,15 @@ DATASET: a folder the trainer can train in NDC (a scene that fills the frame, vi
 near/far bounds: e.g. one written by ``spikegen import``). Trains the default method on the CPU
 twice, same seed, iterations and resolution, and evaluates both with ``spikenerf eval``:
 
-- ``DIR/run_cube``: the field in the world cube [-1.5, 1.5]^3 (``--space cube``, the default);
-- ``DIR/run_ndc``: the field in NDC (``--space ndc``, spikenerf/ndc.py).
+- ``DIR/run_cube``: the field in the world cube [-1.5, 1.5]^3 (``--space cube``);
+- ``DIR/run_ndc``: the field in NDC (``--space ndc``, spikenerf/ndc.py; what the default ``auto`` gives
+  such a dataset), each ray ending in an opaque sample at its point at infinity.
 
 Prints each run's held-out PSNR and SSIM (against what ``eval`` compares with: the ground truth,
 or each view's long-window reconstruction), per-view PSNR, the final grid's dimensions and the
 training seconds, and the best constant image's PSNR. ``--reuse-runs``: keep a run folder whose
-checkpoint already has ITERS iterations and its metrics instead of training it again.
+checkpoint already has ITERS iterations and its metrics instead of training it again (e.g. a cube
+run made by an earlier version: the cube path is unchanged).
 """
 from __future__ import annotations
 
@@ -43,7 +45,8 @@ def run_one(name: str, args) -> dict:
         evaluate(run, device="cpu", progress=False)
     out = json.loads((run / "metrics.json").read_text())
     state = load_checkpoint(ck, "cpu")
-    out["dims"], out["space"] = state["field"]["dims"], "ndc" if state.get("space") else "world cube"
+    out["dims"] = list(state["state"]["grid"].shape[2:])  # (older checkpoints' field configs lack "dims")
+    out["space"] = "ndc" if state.get("space") else "world cube"
     return out
 
 

@@ -208,3 +208,17 @@ def test_training_crops_the_grid_to_the_object(dataset, tmp_path):
             assert ck["config"]["fit_box"] is True
         else:
             assert np.allclose(lo, -1.5) and np.allclose(hi, 1.5)
+
+
+def test_iterations_default_follows_the_image_size(dataset, tmp_path):
+    from spikenerf.train import ITERS_AT, default_iters
+
+    (p100, n100), (p400, n400) = ITERS_AT
+    assert default_iters(100, 100) == n100 and default_iters(400, 400) == n400
+    assert default_iters(32, 32) == n100 and default_iters(800, 800) == n400  # the nearer one outside
+    assert n100 < default_iters(200, 200) < n400 and default_iters(250, 400) % 100 == 0
+    run = tmp_path / "auto"  # --iters 0: the run records the resolved count and its schedule follows it
+    train(_cfg(dataset, iters=0), run, progress=False, log=lambda m: None, stop_at=1)
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["iters"] == default_iters(SIZE, SIZE)
+    assert cfg["grid_schedule"][0][0] == int(0.1 * cfg["iters"])

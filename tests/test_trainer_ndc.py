@@ -1,6 +1,7 @@
 """Forward-facing captures in normalised device coordinates (spikenerf/ndc.py): the map checked by
 hand, detection, training and evaluation end to end, animations, and checkpoints that record the
 space (and old ones without it, which stay in the world cube)."""
+import dataclasses
 import json
 
 import numpy as np
@@ -12,7 +13,8 @@ pytestmark = pytest.mark.torch
 from click.testing import CliRunner  # noqa: E402
 
 from spikegen.errors import InputError  # noqa: E402
-from spikegen.spikeio import linear_to_srgb, write_json_atomic  # noqa: E402
+from spikegen.formats import CaptureTransforms, SpikeBlock, ViewRecord  # noqa: E402
+from spikegen.spikeio import linear_to_srgb, write_dat, write_json_atomic, write_png  # noqa: E402
 from spikenerf import ndc, train as train_mod  # noqa: E402
 from spikenerf.cli import main  # noqa: E402
 from spikenerf.config import TrainConfig  # noqa: E402
@@ -23,7 +25,8 @@ from spikenerf.model import GridField  # noqa: E402
 from spikenerf.render import render_rays  # noqa: E402
 from spikenerf.train import checkpoint_space, train  # noqa: E402
 from test_trainer_cli import dataset  # noqa: E402,F401 (the sphere on white: an object, not a capture)
-from test_trainer_forward import CAM_Z, CARD_Z, H, K, W, make_capture  # noqa: E402
+from test_trainer_forward import (CAM_Z, CARD_Z, FRAMES, H, INTENSITY, K, SUPER, W, _poses,  # noqa: E402
+                                  _spikes, make_capture)
 
 
 def _turn(axis: str, degrees: float) -> np.ndarray:
@@ -217,9 +220,9 @@ def test_a_checkpoint_from_before_ndc_resumes_and_evaluates_in_the_world_cube(ca
     assert evaluate(old, device="cpu", progress=False)["psnr"] == evaluate(whole, device="cpu", progress=False)["psnr"]
 
 
-def test_the_cube_stays_the_default_and_ndc_is_refused_where_it_does_not_apply(capture, dataset, tmp_path):
-    """NDC is opt-in (--space ndc|auto): by default a forward capture trains in the world cube; asked
-    for an object on white, or for views that do not face one way, it is one clear error, no run."""
+def test_the_cube_on_request_and_ndc_is_refused_where_it_does_not_apply(capture, dataset, tmp_path):
+    """With --space cube a forward capture trains in the world cube; NDC asked for an object on white,
+    or for a run whose checkpoint is in the cube, is one clear error, no run."""
     msgs = []
     train(_cfg(capture, iters=2, space="cube"), tmp_path / "cube", progress=False, log=msgs.append)
     assert "space" not in torch.load(tmp_path / "cube" / "checkpoint.pt", weights_only=False)
@@ -230,3 +233,76 @@ def test_the_cube_stays_the_default_and_ndc_is_refused_where_it_does_not_apply(c
     assert not (tmp_path / "w").exists()
     with pytest.raises(InputError, match="checkpoint was made with space='cube'"):
         train(_cfg(capture, iters=4), tmp_path / "cube", progress=False, log=lambda m: None)  # ndc on a cube run
+
+
+def _sky_capture(root, views: int = 20):
+    """As test_trainer_forward.make_capture, but behind the card there is only sky: a bright luminance
+    that depends on the ray's direction alone (content at infinity, as a far background is in NDC)."""
+    rng = np.random.default_rng(7)
+    s = (np.arange(SUPER) + 0.5) / SUPER
+    col = np.arange(W)[None, :, None, None] + s[None, None, None, :]
+    row = np.arange(H)[:, None, None, None] + s[None, None, :, None]
+    records = []
+    for i, pose in enumerate(_poses(views, rng)):
+        d = np.stack(np.broadcast_arrays((col - K.cx) / K.fl_x, -(row - K.cy) / K.fl_y, -np.ones(1)), -1)
+        d = d @ pose[:3, :3].T
+        t = (CARD_Z - pose[2, 3]) / d[..., 2]
+        xc, yc = pose[0, 3] + t * d[..., 0], pose[1, 3] + t * d[..., 1]
+        card = (np.abs(xc - 0.15) < 0.25) & (np.abs(yc + 0.05) < 0.2)
+        sky = 0.8 + 0.3 * d[..., 0] / np.linalg.norm(d, axis=-1)
+        spikes = _spikes(np.where(card, 0.3, sky).mean(axis=(2, 3)), rng)
+        write_dat(root / f"train/r_{i}.dat", spikes)
+        write_png(root / f"train/r_{i}.png", linear_to_srgb(np.clip(spikes.mean(0) / spikes.mean(0).max(), 0, 1)))
+        records.append(ViewRecord("train", i, pose, pose[None]))
+    bounds = np.tile([0.9 * (CAM_Z - CARD_Z), 1e3], (views, 1))
+    doc = CaptureTransforms(K, SpikeBlock(H, W, FRAMES, 1, INTENSITY, background=None), tuple(records), bounds,
+                            tuple(f"v{i:02d}.dat" for i in range(views)), np.eye(4), "tfp")
+    write_json_atomic(root / "transforms_train.json", doc.to_json())
+    return root
+
+
+def test_the_light_that_passes_through_the_grid_takes_the_luminance_at_infinity(tmp_path, monkeypatch):
+    """A card in front of a bright sky at infinity, trained in NDC: with the opaque sample at each
+    ray's point at infinity (ndc.NDC.opaque_infinity, the default) the held-out views score well
+    above the same training without it (the light that passes through the grid then adds black, and
+    the sky must first be learned opaque in the grid's far layers); its checkpoint records it."""
+    cap = _sky_capture(tmp_path / "sky")
+    cfg = _cfg(cap, iters=150)
+    train(cfg, tmp_path / "with", progress=False, log=lambda m: None)
+    real = ndc.for_dataset
+    monkeypatch.setattr(train_mod.ndc, "for_dataset",
+                        lambda ds: (dataclasses.replace(real(ds)[0], opaque_infinity=False), "without"))
+    train(cfg, tmp_path / "without", progress=False, log=lambda m: None)
+    monkeypatch.undo()
+    assert torch.load(tmp_path / "with" / "checkpoint.pt", weights_only=False)["space"]["opaque_infinity"] is True
+    assert checkpoint_space(torch.load(tmp_path / "without" / "checkpoint.pt", weights_only=False)).opaque_infinity \
+        is False
+    with_, without = (evaluate(tmp_path / r, device="cpu", progress=False)["psnr"] for r in ("with", "without"))
+    assert with_ > without + 3.0, (with_, without)
+
+
+def test_a_space_saved_before_the_opaque_infinity_reads_without_it():
+    old = {k: v for k, v in _space().to_json().items() if k != "opaque_infinity"}  # as checkpoints held it
+    assert ndc.NDC.from_json(old) == _space() and not _space().opaque_infinity
+    on = dataclasses.replace(_space(), opaque_infinity=True)
+    assert ndc.NDC.from_json(json.loads(json.dumps(on.to_json()))) == on
+
+
+def test_auto_is_the_default_ndc_for_a_forward_capture_the_cube_for_an_object_on_white(capture, dataset, tmp_path):
+    """Without flags a forward-facing capture trains in NDC and a synthetic object on white in the world
+    cube; a run made in the cube with --space cube resumes under the default in the cube."""
+    assert TrainConfig(dataset="x").space == "auto"
+    res = CliRunner().invoke(main, ["train", str(capture), "--iters", "2", "--batch-rays", "64", "--device", "cpu",
+                                    "--out", str(tmp_path / "fwd"), "--quiet"])
+    assert res.exit_code == 0, res.output
+    assert torch.load(tmp_path / "fwd" / "checkpoint.pt", weights_only=False)["space"]["kind"] == "ndc"
+    res = CliRunner().invoke(main, ["train", str(dataset), "--iters", "2", "--batch-rays", "64", "--device", "cpu",
+                                    "--out", str(tmp_path / "obj"), "--quiet"])
+    assert res.exit_code == 0, res.output
+    ck = torch.load(tmp_path / "obj" / "checkpoint.pt", weights_only=False)
+    assert "space" not in ck and ck["field"]["aabb"] == [[-1.5] * 3, [1.5] * 3]
+    train(_cfg(capture, iters=4, space="cube"), tmp_path / "cube", progress=False, log=lambda m: None, stop_at=2)
+    msgs = []
+    train(_cfg(capture, iters=4, space="auto"), tmp_path / "cube", progress=False, log=msgs.append)
+    ck = torch.load(tmp_path / "cube" / "checkpoint.pt", weights_only=False)
+    assert any("resuming" in m for m in msgs) and ck["iteration"] == 4 and "space" not in ck

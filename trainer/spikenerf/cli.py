@@ -37,8 +37,8 @@ def main():
 @click.option("--method", default=DEFAULT_METHOD, show_default=True, type=click.Choice(list(METHODS)),
               help="Supervision: the published method, an idealised variant and its ablation, the TFP/TFI "
                    "baselines, or the project's best.")
-@click.option("--iters", default=TrainConfig.iters, show_default=True, type=click.IntRange(min=1),
-              help="Training iterations.")
+@click.option("--iters", default=TrainConfig.iters, show_default=True, type=click.IntRange(min=0),
+              help="Training iterations; 0 = chosen from the image size (3000 at 100 x 100, 9000 at 400 x 400).")
 @click.option("--device", default="auto", show_default=True, type=click.Choice(["auto", "cpu", "cuda"]))
 @click.option("--resolution", default=0, type=click.IntRange(min=0),
               help="Train at this width (must divide the dataset's); 0 = the dataset's.")
@@ -61,7 +61,8 @@ def main():
                    "scene that fills the frame keeps the whole box).")
 @click.option("--space", type=click.Choice(SPACES), default=TrainConfig.space, show_default=True,
               help="The field's space for a scene that fills the frame (an imported capture): the world cube, "
-                   "NDC (views facing one way), or auto (NDC where it applies). Objects on white use the cube.")
+                   "NDC (views facing one way), or auto (NDC where it applies, else the cube). Objects on white "
+                   "use the cube.")
 @click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),
               help="Weight of the total-variation (smoothness) prior on the grids.")
 @click.option("--tv-points", default=TrainConfig.tv_points, show_default=True, type=click.IntRange(min=0),

@@ -14,7 +14,7 @@ SPACES = ("cube", "auto", "ndc")  # TrainConfig.space
 class TrainConfig:
     dataset: str
     method: str = DEFAULT_METHOD
-    iters: int = 3000
+    iters: int = 0  # 0 = chosen from the image size (train.default_iters)
     device: str = "auto"
     resolution: int = 0  # 0 = the dataset's
     frames: int | None = None  # train from the first w frames of each stream; None = all (resolved when training)
@@ -33,8 +33,9 @@ class TrainConfig:
     tv_weight: float = 1e-4
     lazy_above: int = 0  # grids with more voxels than this train with the lazy Adam (optim.py); 0 = never
     # the field's space for a scene that fills the frame: "cube" (world [-1.5, 1.5]^3), "ndc" (LLFF's
-    # normalised device coordinates; refused unless the views face one way), "auto" (NDC where it applies)
-    space: str = "cube"
+    # normalised device coordinates; refused unless the views face one way), "auto" (NDC where it applies,
+    # the cube otherwise; objects on white always train in the cube)
+    space: str = "auto"
     tv_points: int = 0  # > 0: the prior at the voxels of this many of a step's sample points, not on a random block
     sh_degree: int = 1  # view-dependent luminance: spherical harmonics up to this degree (0 = none)
     sh_scale: int = 2  # the SH coefficients' grid is this many times coarser than the main grid

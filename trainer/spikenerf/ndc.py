@@ -11,7 +11,10 @@ with ``a_x = 2 fl_x / w``, ``a_y = 2 fl_y / h``, ``b_x = 2 cx / w - 1``, ``b_y =
 dataset's pinhole intrinsics: the reference camera's image spans x, y in [-1, 1]) and ``n`` the
 near plane: depth ``n`` maps to z = -1 and infinity to z = +1, so z is affine in disparity. The map
 is projective, so rays stay straight lines; a ray is moved along itself to the near plane and
-then sampled uniformly in NDC, i.e. uniformly in disparity.
+then sampled uniformly in NDC, i.e. uniformly in disparity. Each ray ends in an opaque sample at
+its point at infinity (z = 1; as NeRF's last sample, whose interval reaches to infinity): the light
+that passes through the grid takes the field's luminance there, so the grid's far face is a learned
+background per direction (render.render_ndc_rays; ``NDC.opaque_infinity``).
 
 Reference camera (as LLFF's average pose): at the mean of the training cameras' centres, its
 backward axis (+Z) the normalised mean of theirs, its right axis (+X) perpendicular to that and
@@ -47,16 +50,22 @@ class NDC:
     b: tuple  # (b_x, b_y)
     box: tuple  # ((x0, y0, -1), (x1, y1, 1)): the grid's box in NDC
     spread: float  # median distance of the training cameras from the reference centre (video paths)
+    # True: each ray ends in an opaque sample at its point at infinity, which takes the light that passes
+    # through the grid with the field's luminance there (render.render_ndc_rays); False (checkpoints made
+    # before it, which lack the key): that light adds the background, black
+    opaque_infinity: bool = False
 
     def to_json(self) -> dict:
         return {"kind": "ndc", "pose": [list(r) for r in self.pose], "near": self.near, "a": list(self.a),
-                "b": list(self.b), "box": [list(r) for r in self.box], "spread": self.spread}
+                "b": list(self.b), "box": [list(r) for r in self.box], "spread": self.spread,
+                "opaque_infinity": self.opaque_infinity}
 
     @classmethod
     def from_json(cls, d: dict) -> "NDC":
         return cls(tuple(tuple(float(v) for v in r) for r in d["pose"]), float(d["near"]),
                    tuple(float(v) for v in d["a"]), tuple(float(v) for v in d["b"]),
-                   tuple(tuple(float(v) for v in r) for r in d["box"]), float(d["spread"]))
+                   tuple(tuple(float(v) for v in r) for r in d["box"]), float(d["spread"]),
+                   bool(d.get("opaque_infinity", False)))
 
     def points(self, world: np.ndarray) -> np.ndarray:
         """NDC ``[..., 3]`` of world points ``[..., 3]`` (in front of the reference camera), NumPy."""
@@ -131,7 +140,7 @@ def for_dataset(ds) -> tuple[NDC | None, str]:
     ends = torch.cat([o_ndc, o_ndc + length[:, None] * d_ndc]).numpy()  # near-plane and infinity ends
     lo, hi = ends[:, :2].min(0), ends[:, :2].max(0)
     box = ((float(lo[0]), float(lo[1]), -1.0), (float(hi[0]), float(hi[1]), 1.0))
-    space = NDC(space.pose, near, a, b, box, space.spread)
+    space = NDC(space.pose, near, a, b, box, space.spread, opaque_infinity=True)
     return space, (f"forward-facing (optical axes within {axis_deg.max():.1f} degrees of the mean): rays in NDC, "
                    f"near plane {near:.4g}, grid box x [{box[0][0]:.3f}, {box[1][0]:.3f}], "
                    f"y [{box[0][1]:.3f}, {box[1][1]:.3f}], z [-1, 1]")

@@ -82,6 +82,31 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.
     return lum + (1 - acc) * background, acc, origins.new_zeros(n).index_add(0, ray_of, w * t) + (1 - acc) * far
 
 
+def render_ndc_rays(field, space, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.Tensor | None = None,
+                    background: float = BACKGROUND, far: bool = False):
+    """:func:`render_rays` of world rays ``origins, dirs [n, 3]`` in the field's NDC ``space`` (ndc.NDC):
+    each is sampled uniformly in NDC from the near plane, and the view-dependent term reads its world
+    direction. Returns (its values, as :func:`render_rays` gives them; with ``far``, the depth counts
+    the light that passes through at the ray's NDC length to infinity), (NDC origins, directions, lengths)).
+
+    With ``space.opaque_infinity`` the ray ends in an opaque sample at its point at infinity (as NeRF's
+    last sample, whose interval reaches to infinity): the light that passes through the grid takes the
+    field's luminance at that point (z = 1), clamped into the grid's box (a ray that ends beyond its x, y
+    range; the box's far face, which the grid's growth may move by up to half a voxel), instead of the
+    background. The far face thus holds a learned
+    luminance per direction. A ray that does not point forward (NDC length 0) keeps ``background``.
+    Training and rendering both composite through this function, so they agree."""
+    o_ndc, d_ndc, length = space.rays(origins, dirs)
+    if space.opaque_infinity:  # queried before the samples: the field's last_points stay the samples'
+        end = o_ndc + length[:, None] * d_ndc
+        end = torch.maximum(torch.minimum(end, field.aabb[1]), field.aabb[0])
+        x_end = field.query(end, dirs)[1]
+        background = torch.where(length > 0, x_end, torch.full_like(x_end, background))
+    maps = render_rays(field, o_ndc, d_ndc, jitter, background, far=length if far else None, view_dirs=dirs,
+                       near=0.0)
+    return maps, (o_ndc, d_ndc, length)
+
+
 @torch.no_grad()
 def _occupied_samples(field, origins, dirs, step, jitter, broadcast: bool | None = None, near: float = NEAR_T):
     """Packed samples: (flat index [m], ray [m], point [m, 3]), sorted by ray then depth.
@@ -129,8 +154,10 @@ def render_image(field, pose: torch.Tensor, height: int, width: int, focal_px, c
     :func:`pixel_rays` takes it), and with ``far`` given, depth ``[H, W]`` too (see :func:`render_rays`).
 
     ``space``: the field's :class:`ndc.NDC` (None: the field is in world coordinates); the rays are
-    then mapped into it, and the depth (with ``far`` given; its value is then unused) is the NDC z
-    where the ray ends, -1 at the near plane to 1 at infinity (light that passes through: 1)."""
+    then mapped into it and composited as in training (:func:`render_ndc_rays`; the opacity is the
+    grid's, without the opaque sample at infinity), and the depth (with ``far`` given; its value is
+    then unused) is the NDC z where the ray ends, -1 at the near plane to 1 at infinity (light that
+    passes through: 1)."""
     P = height * width
     chunks = []
     for a in range(0, P, chunk):
@@ -139,9 +166,7 @@ def render_image(field, pose: torch.Tensor, height: int, width: int, focal_px, c
         if space is None:
             chunks.append(render_rays(field, o, d, background=background, far=far))
             continue
-        o_ndc, d_ndc, length = space.rays(o, d)
-        maps = render_rays(field, o_ndc, d_ndc, background=background, far=None if far is None else length,
-                           view_dirs=d, near=0.0)
+        maps, (o_ndc, d_ndc, length) = render_ndc_rays(field, space, o, d, background=background, far=far is not None)
         if far is not None:  # distance along the NDC ray -> its z
             maps = (*maps[:2], torch.where(length > 0, o_ndc[:, 2] + maps[2] * d_ndc[:, 2], torch.ones_like(length)))
         chunks.append(maps)

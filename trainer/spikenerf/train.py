@@ -23,7 +23,7 @@ from .data import load_dataset
 from .methods import METHODS
 from .model import GridField
 from .optim import LazyGridAdam
-from .render import BACKGROUND, pixel_rays, render_rays
+from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
 from .targets import Targets, build_targets
 
 CHECKPOINT = "checkpoint.pt"
@@ -43,6 +43,20 @@ def resolve_device(name: str) -> torch.device:
     if name not in ("cpu", "cuda"):
         raise InputError(f"--device must be auto, cpu or cuda, got {name!r}")
     return torch.device(name)
+
+
+# The default iteration count at two image sizes, chosen on the project's procedural lego (spikelik,
+# i64, 48 train views, scored on its 8 val views; docs/trainer.md "Iterations"), never on the real
+# lego's views: the best measured count at 100 x 100 and at 400 x 400. Between them it is
+# interpolated in log pixels; outside, the nearer one holds.
+ITERS_AT = ((100 * 100, 3000), (400 * 400, 9000))
+
+
+def default_iters(height: int, width: int) -> int:
+    """``--iters 0``: the iterations for an image of this size (ITERS_AT), a multiple of 100."""
+    (p0, n0), (p1, n1) = ITERS_AT
+    t = min(1.0, max(0.0, math.log(height * width / p0) / math.log(p1 / p0)))
+    return int(round(n0 * (n1 / n0) ** t / 100)) * 100
 
 
 def final_grid(cfg: TrainConfig, width: int) -> int:
@@ -203,10 +217,16 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> No
            "fit_box": False, "lazy_above": 0, "space": "cube", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above", "space"):
+                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
+    # the space: a resumed run keeps its checkpoint's; "auto" takes it, "cube" and "ndc" must name it
+    made_in = "ndc" if ck.get("space") else "cube"
+    if new["space"] != "auto" and new["space"] != made_in:
+        raise InputError(f"{path}: checkpoint was made with space={old['space']!r} (its field is in "
+                         f"{'NDC' if ck.get('space') else 'the world cube'}), this run asks {new['space']!r}; "
+                         f"use another --out or the same settings")
 
 
 def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at: int | None = None) -> Path:
@@ -216,17 +236,18 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     """
     if cfg.method not in METHODS:
         raise InputError(f"unknown --method {cfg.method!r}; expected one of {', '.join(METHODS)}")
-    if cfg.iters < 1:
-        raise InputError(f"--iters must be >= 1, got {cfg.iters}")
+    if cfg.iters < 0:
+        raise InputError(f"--iters must be >= 0 (0 = chosen from the image size), got {cfg.iters}")
     device = resolve_device(cfg.device)
     method = METHODS[cfg.method]
     ds = load_dataset(cfg.dataset)
     H, W = _resolution(ds, cfg.resolution)
     # the fitted box is for an object on white; a scene that fills the frame (an imported capture) keeps its box
-    cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame)
+    cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame,
+                              iters=cfg.iters or default_iters(H, W))
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
-    space = None  # the world cube (an object on white, or a scene that fills the frame with --space cube)
+    space = None  # the world cube (an object on white, --space cube, or views that do not all face one way)
     if cfg.space not in SPACES:
         raise InputError(f"unknown space {cfg.space!r}; one of {', '.join(SPACES)}")
     if cfg.space == "ndc" and not ds.fills_frame:
@@ -310,9 +331,8 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
         if space is None:
             x, _ = render_rays(field, o, d, jitter, background)  # the composite the sensor model sees
-        else:  # sampled uniformly in NDC from the near plane; the view-dependent term reads world directions
-            o_ndc, d_ndc, _ = space.rays(o, d)
-            x, _ = render_rays(field, o_ndc, d_ndc, jitter, background, view_dirs=d, near=0.0)
+        else:  # sampled uniformly in NDC from the near plane, composited as evaluation and rendering do
+            (x, _), _ = render_ndc_rays(field, space, o, d, jitter, background)
         loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
         if cfg.tv_weight > 0:
             tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)

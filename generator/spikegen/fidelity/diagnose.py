@@ -38,7 +38,8 @@ under each model's simulation) by more than a penalty; only the kept ones are re
 "heldout" is the score of the baseline and of the extended sensor; "unexplained" lists the
 held-out statistics the extended sensor does not reproduce (:mod:`.unexplained`); "baseline",
 "extended" and "gain" are the named discrepancy measures (stats.MEASURES) of each model on
-the held-out frames. With ``self`` only static pixels (heldout.static_pixels) are judged.
+the held-out frames. With ``self`` only static pixels (heldout.motion_test) are judged: pixels
+tested for a change of rate that show none; "untested_pixels" had too few spikes to be tested.
 
 The steps are separate modules, each returning frozen records (:mod:`.records`):
 :mod:`.ratefit` (flicker, the rate model), :mod:`.structure` (per-pixel structure),
@@ -56,7 +57,7 @@ from ..sensor import Sensor, simulate
 from . import heldout, stats
 from .effects import gated_effects, sensor_with
 from .ratefit import constant_interval_fraction, fit_flicker, fit_rate_model, self_refractory
-from .records import ENVELOPE_SIZE, GATES, SIM_SEED, Context, Effect, Fit, RateFit, as_number  # noqa: F401
+from .records import ENVELOPE_SIZE, GATES, SIM_SEED, SIM_THREADS, Context, Effect, Fit, RateFit, as_number  # noqa: F401
 from .structure import pixel_structure
 from .synth import EFFECTS
 from .unexplained import unexplained
@@ -119,11 +120,12 @@ def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | 
     step("effects, chosen by held-out score")
     effects, extended, held = _choose(ctx, fit)
     step("held-out comparison")
-    bm, em = (_held_out(ctx, sensor) for sensor in (baseline, extended))
+    bm, em = (_held_out(ctx, sim) for sim in held["sims"])  # the baseline's and the extended sensor's
     n_static = int(ctx.static.sum())
     info = {"frames": T, "fit_frames": ctx.Tf, "held_out_frames": T - ctx.Tf, "height": H, "width": W,
             "intensity": ctx.intensity, "reference": "self" if ctx.self_ref else f"{ctx.X.shape[0]} sub-frame(s)",
-            "baseline_sensor": baseline.name, "static_pixels": n_static, "moving_pixels": H * W - n_static}
+            "baseline_sensor": baseline.name, "static_pixels": n_static,
+            "moving_pixels": H * W - n_static - ctx.untested, "untested_pixels": ctx.untested}
     return Diagnosis(effects, extended, bm, em, fit=fit, info=info, heldout=held["doc"],
                      unexplained=held["unexplained"], static=ctx.static.reshape(H, W))
 
@@ -143,7 +145,8 @@ def score_sensor(spikes: np.ndarray, radiance, intensity: float, sensor: Sensor,
 def _choose(ctx: Context, fit: Fit) -> tuple[list, Sensor, dict]:
     """The gated effects, then backward elimination by held-out score (heldout.select); returns
     the verdicts (dropped effects undetected, with a note), the extended sensor, and
-    ``{"doc": the JSON "heldout" entry, "unexplained": entries}``."""
+    ``{"doc": the JSON "heldout" entry, "unexplained": entries, "sims": (the baseline's
+    simulation, the extended sensor's)}``."""
     found, electrons = gated_effects(ctx, fit)
     cache = {}
 
@@ -157,16 +160,17 @@ def _choose(ctx: Context, fit: Fit) -> tuple[list, Sensor, dict]:
     kept, evidence = heldout.select(gated, evaluate, {n: heldout.penalty(n, found[n].parameters) for n in gated})
     effects = [_with_evidence(found[n], n in kept, evidence.get(n)) for n in EFFECTS]
     extended = sensor_with(ctx, fit, found, set(kept), electrons)
-    ideal, _ = _held_score(ctx, ctx.baseline)
+    ideal, ideal_sim = _held_score(ctx, ctx.baseline)
     fitted = evaluate(set(kept))
     sim = cache[frozenset(kept)][1]
+    cache.clear()  # the other models' simulations
     doc = {"measure": heldout.MEASURE, "ideal": as_number(ideal.mean), "fitted": as_number(fitted.mean),
            "higher_is_better": True, "window_frames": heldout.window_lengths(ctx.frames - ctx.Tf),
            "pixels": int(ctx.static.sum()),
            "effects": {n: {"gain_nats": as_number(g), "standard_error": as_number(se), "kept": n in kept}
                        for n, (g, se) in evidence.items()}}
     found_unexplained = unexplained(ctx.spikes[ctx.Tf:], sim, ctx.static, ctx.X.shape[0] == 1)
-    return effects, extended, {"doc": doc, "unexplained": found_unexplained}
+    return effects, extended, {"doc": doc, "unexplained": found_unexplained, "sims": (ideal_sim, sim)}
 
 
 def _with_evidence(effect: Effect, kept: bool, gain) -> Effect:
@@ -184,11 +188,21 @@ def _with_evidence(effect: Effect, kept: bool, gain) -> Effect:
 
 def _held_score(ctx: Context, sensor: Sensor):
     """``(HeldOutScore, simulation [T, H, W])`` of ``sensor``."""
-    sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED)
+    sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED,
+                   threads=SIM_THREADS)
     sim_stats = stats.pixel_stats(sim)
     held = slice(ctx.Tf, ctx.frames)
     modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, ctx.frames)
-    return heldout.score(ctx.spikes[held], sim, sim_stats, ctx.static, ctx.X.shape[0] == 1, modulation), sim
+    return heldout.score(ctx.spikes[held], sim, sim_stats, ctx.static, ctx.X.shape[0] == 1, modulation,
+                         measured_stats=_held_stats(ctx)), sim
+
+
+def _held_stats(ctx: Context) -> tuple:
+    """``(PixelStats, interval pixels)`` of the held-out frames, computed once per diagnosis."""
+    if "held_stats" not in ctx.cache:
+        measured = ctx.spikes[ctx.Tf:]
+        ctx.cache["held_stats"] = (stats.pixel_stats(measured), stats.interval_pixels(measured))
+    return ctx.cache["held_stats"]
 
 
 def _check_stream(spikes, intensity) -> np.ndarray:
@@ -218,9 +232,9 @@ def _context(spikes, radiance, intensity: float, baseline: Sensor, Tf: int) -> C
         if X.ndim != 3 or X.shape[1:] != (H, W):
             raise InputError(f"reference radiance is {X.shape[-1]}x{X.shape[-2]}, the stream is {W}x{H}")
     Rb, db = baseline.maps(H, W)
-    static = heldout.static_pixels(spikes) if self_ref else np.ones(H * W, dtype=bool)
+    static, tested = heldout.motion_test(spikes) if self_ref else (np.ones(H * W, dtype=bool),) * 2
     return Context(spikes, X, intensity, baseline, Tf, meas, halves, self_ref, Rb.reshape(-1), db.reshape(-1),
-                   constant_interval_fraction(meas), static)
+                   constant_interval_fraction(meas), static, int((~tested).sum()))
 
 
 def _self_radiance(rate, intensity, baseline, H, W):
@@ -246,8 +260,8 @@ def _fit_all(ctx: Context) -> Fit:
     return Fit(rate, flicker, pixel_structure(ctx, rate))
 
 
-def _held_out(ctx: Context, sensor: Sensor) -> dict:
-    """Discrepancy measures (stats.MEASURES) of ``sensor``'s simulation on the held-out frames."""
-    sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED)
+def _held_out(ctx: Context, sim: np.ndarray) -> dict:
+    """Discrepancy measures (stats.MEASURES) of a sensor's simulation ``sim [T, H, W]`` (seed
+    SIM_SEED) on the held-out frames."""
     held = slice(ctx.Tf, ctx.frames)
-    return stats.discrepancies(ctx.spikes[held], sim[held], ctx.X.mean(axis=0))
+    return stats.discrepancies(ctx.spikes[held], sim[held], ctx.X.mean(axis=0), measured_stats=_held_stats(ctx)[0])

@@ -14,7 +14,8 @@ import numpy as np
 
 from ..sensor import Sensor, simulate
 from . import exact, stats
-from .records import GATES, MIN_COHERENCE, MIN_SPIKES, SIM_SEED, Context, Effect, Fit, judge, rate_from_interval, unavailable
+from .records import (GATES, MIN_COHERENCE, MIN_SPIKES, SIM_SEED, SIM_THREADS, Context, Effect, Fit, judge,
+                      rate_from_interval, unavailable)
 from .synth import EFFECTS
 
 MODEL_VARIANCE_SHARE = 0.1  # shot noise must add this much to the model's own interval variance
@@ -312,7 +313,8 @@ def _check_flicker_against_model(ctx: Context, fit: Fit, found: dict) -> Effect:
     fl = fit.flicker
     others = {k: v for k, v in found.items() if k != "flicker"}
     sensor = build_sensor(ctx, fit, others, electrons=0.0)
-    sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED)[:ctx.Tf]
+    sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED,
+                   threads=SIM_THREADS)[:ctx.Tf]
     own = abs(stats.sine_at(stats.population_signal(sim, fl.mask), fl.light, 1.0 / fl.period_frames))
     eff = found["flicker"]
     eff = replace(eff, parameters={**eff.parameters, "model_depth_at_period": own})
@@ -341,7 +343,8 @@ def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
     noise is independent from pixel to pixel; when the measured stream has a modulation shared
     by its pixels beyond the model's (:func:`_common_mode`), both streams' intervals are measured
     on their own population's clock (stats.population_clock), which removes it, first."""
-    sim = simulate(ctx.X, ctx.intensity, deterministic, frames=ctx.frames, seed=SIM_SEED)[:ctx.Tf]
+    sim = simulate(ctx.X, ctx.intensity, deterministic, frames=ctx.frames, seed=SIM_SEED,
+                   threads=SIM_THREADS)[:ctx.Tf]
     common = _common_mode(ctx, fit, sim)
     meas, ps = ctx.meas, None
     if common["removed"]:

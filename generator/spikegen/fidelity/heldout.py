@@ -44,6 +44,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from statistics import NormalDist
 
 import numpy as np
 
@@ -150,12 +151,14 @@ def count_variance(simulated: np.ndarray, w: int, static_reference: bool,
 
 
 def score(measured: np.ndarray, simulated: np.ndarray, sim_stats: stats.PixelStats, mask: np.ndarray,
-          static_reference: bool, modulation: Modulation | None = None) -> HeldOutScore:
+          static_reference: bool, modulation: Modulation | None = None, measured_stats: tuple | None = None
+          ) -> HeldOutScore:
     """The held-out score of ``measured [Th, H, W]`` under ``simulated [T, H, W]`` (the whole run,
     whose last ``Th`` frames are the held-out ones) with interval statistics ``sim_stats``;
-    pixels ``mask [P]``; ``modulation``: the model's (None: none)."""
+    pixels ``mask [P]``; ``modulation``: the model's (None: none); ``measured_stats``: the
+    ``(stats.pixel_stats, stats.interval_pixels)`` of ``measured`` if already computed."""
     if modulation is None:
-        per_pixel = _interval_loglik(measured, sim_stats)
+        per_pixel = _interval_loglik(measured, sim_stats, measured_stats)
     else:
         per_pixel = _clock_interval_loglik(measured, simulated, modulation)
     lengths = window_lengths(measured.shape[0])
@@ -187,12 +190,11 @@ def _count_loglik(measured, simulated, sim_stats, mask, w: int, static_reference
     return (-0.5 * (np.log(2 * np.pi * v) + (c - m) ** 2 / v)).sum(axis=0)
 
 
-def _interval_loglik(measured, sim_stats: stats.PixelStats) -> np.ndarray:
+def _interval_loglik(measured, sim_stats: stats.PixelStats, measured_stats: tuple | None = None) -> np.ndarray:
     """``[P]`` summed log density of the held-out intervals under a Gaussian of the simulated
     interval mean and variance (with the mean's sampling error, at least :data:`VAR_FLOOR`)."""
     P = sim_stats.n.size
-    ps = stats.pixel_stats(measured)
-    pix = stats.interval_pixels(measured)
+    ps, pix = measured_stats or (stats.pixel_stats(measured), stats.interval_pixels(measured))
     n = np.maximum(sim_stats.n_isi, 1)
     mu = np.where(np.isfinite(sim_stats.isi_mean), sim_stats.isi_mean, measured.shape[0] + 1.0)
     var = np.maximum(np.nan_to_num(sim_stats.isi_var, nan=0.0) * (1.0 + 1.0 / n), VAR_FLOOR)
@@ -223,16 +225,30 @@ def _clock_interval_loglik(measured, simulated, modulation: Modulation) -> np.nd
 
 
 def static_pixels(spikes: np.ndarray) -> np.ndarray:
-    """``[P]`` bool: pixels whose rate does not change over the recording, by two tests on 8
-    equal segments; a pixel is static if it passes both.
+    """``[P]`` bool: pixels whose rate does not change over the recording (:func:`motion_test`)."""
+    return motion_test(spikes)[0]
 
-    1. Counts: the dispersion ``sum (c - mean)^2 / (mean + 1)`` at most :data:`STATIC_DISPERSION`
-       (a renewal train with interval CV <= 1 gives about 7).
+
+def motion_test(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(static [P], tested [P])``, bool: which pixels could be tested for a change of rate over
+    the recording, and which of those passed every test; a pixel that cannot be tested is not
+    static (nothing shows that it is).
+
+    1. Counts in 8 equal segments: the dispersion ``sum (c - mean)^2 / (mean + 1)`` at most
+       :data:`STATIC_DISPERSION` (a renewal train with interval CV <= 1 gives about 7).
     2. Intervals (:func:`interval_dispersion`): each segment's mean interval ``(last - first) /
        (n - 1)``, which for a regular pixel is exact to a fraction of a frame, agrees across the
-       segments within its own error: the chi-square is below its ``1 - STATIC_P`` quantile. A
-       small change of a bright pixel's rate (a bright object over a bright background) moves
-       the count by a spike or two, but the mean interval by many standard errors.
+       segments within its own error, by three tests each at chance :data:`STATIC_P`: the
+       chi-square of all segments, the linear trend over the segments (1 degree of freedom: a
+       slow drift, as of an object that moves a few pixels over the recording, spreads over
+       the chi-square's degrees of freedom but not over the trend's), and the largest step
+       between the segments before and after any boundary (a change late or early in the
+       recording). A small change of a bright pixel's rate (a bright object over a bright
+       background) moves the count by a spike or two, but the mean interval by many standard
+       errors. A pixel with fewer than 3 segments of 3 spikes among 8 is tested on 4 segments,
+       then on the 2 halves (each with 3 spikes); one that has not even that is not tested.
+    3. Interval noise (:func:`_noisier_than_the_rest`): consecutive intervals differ no more than
+       the temporal noise of the pixels that passed 1 and 2 lets them.
 
     A modulation shared by all pixels (stats.shared_variance, as flicker) moves no pixel: when
     one is found the intervals are measured on the population's clock (stats.population_clock)."""
@@ -240,24 +256,66 @@ def static_pixels(spikes: np.ndarray) -> np.ndarray:
     c = window_counts(spikes, seg)[:8]
     mean = c.mean(axis=0)
     dispersion = ((c - mean) ** 2).sum(axis=0) / (mean + 1.0)
-    static = dispersion <= STATIC_DISPERSION
-    chi2, dof = interval_dispersion(spikes, static)
-    return static & ~(chi2 > _chi2_quantile(dof, STATIC_P))
+    counts_ok = dispersion <= STATIC_DISPERSION
+    P = counts_ok.size
+    tested = np.zeros(P, dtype=bool)
+    moving = np.zeros(P, dtype=bool)
+    for segments in (8, 4, 2):
+        test = interval_dispersion(spikes, counts_ok, segments)
+        now = ~tested & (test["dof"] > 0)
+        tested |= now
+        moving |= now & test["moving"]
+        if segments == 8:
+            noise = test
+    moving |= tested & _noisier_than_the_rest(noise, counts_ok & tested & ~moving)
+    return counts_ok & tested & ~moving, tested
 
 
-def interval_dispersion(spikes: np.ndarray, mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(chi-square [P], degrees of freedom [P])`` of the segment mean intervals of each pixel
-    (8 equal segments; those with >= 3 spikes), against their weighted mean, each with variance
+def _noisier_than_the_rest(test: dict, reference: np.ndarray) -> np.ndarray:
+    """``[P]`` pixels whose intervals vary more from one to the next than the sensor's temporal
+    noise lets them: the sample variance of the differences ``d`` of consecutive intervals
+    beyond the ``1 - STATIC_P`` quantile of ``(2 c / lambda^2 + 1) chi2_(n-1) / (n - 1)``, with
+    ``c`` the median of ``v lambda^2`` (stats.excess_interval_var: shot noise and threshold jitter
+    give every pixel the same ``c``) over the ``reference`` pixels, and 1 the most that rounding to
+    whole frames gives (a regular pixel's intervals alternate, as 2, 3, 2, 3, at worst). A pixel whose
+    rate changes faster than its segments can follow (a texture that passes it) has interval
+    differences far beyond that; its own variance, which the segment tests use, holds them and
+    hides the change. A sensor whose temporal noise differs from pixel to pixel would show its
+    noisiest pixels as moving here."""
+    lam, diff_var, n = test["rate"], test["diff_var"], test["n_diff"]
+    ok = reference & np.isfinite(diff_var) & (lam > 0)
+    if ok.sum() < 20:
+        return np.zeros(lam.size, dtype=bool)
+    v = np.maximum(diff_var / (1.0 + 1.0 / np.maximum(n, 1)) / 2.0 - 0.25, 0.0)
+    c = float(np.median(v[ok] * lam[ok] ** 2))
+    expected = 2.0 * c / np.maximum(lam, 1e-12) ** 2 + 1.0
+    dof = np.maximum(n - 1, 0).astype(np.int64)
+    limit = expected * _chi2_quantile(dof, STATIC_P) / np.maximum(dof, 1)
+    return np.isfinite(diff_var) & (dof >= 2) & (diff_var > limit)
+
+
+def interval_dispersion(spikes: np.ndarray, mask: np.ndarray, segments: int = 8) -> dict:
+    """The tests of :func:`motion_test` on the segment mean intervals of each pixel
+    (``segments`` equal segments; those with >= 3 spikes), each with variance
     ``((n - 1) v + 1/6) / (n - 1)^2``: ``v = max(var(d) / 2 - 1/4, 0)`` the pixel's interval
     variance beyond rounding from the differences ``d`` of consecutive intervals (which a slow
     change of rate leaves out; stats.excess_interval_var), 1/6 the rounding of the two ends.
     With a modulation shared by the pixels of ``mask [P]`` (at least ``5`` standard errors and a
     relative SD of 0.01 in windows of stats.COMMON_WINDOW frames) times are measured on their
-    population's clock, and its counting noise is added to the variance. ``dof`` is 0 where
-    fewer than 3 segments count."""
+    population's clock, and its counting noise is added to the variance.
+
+    Returns ``{"chi2", "dof", "trend", "step", "moving", "diff_var", "n_diff", "rate"}``, each
+    ``[P]``: the chi-square against
+    the weighted mean and its degrees of freedom (0 where fewer than ``min(3, segments)``
+    segments count: not tested), the squared z of the weighted linear trend over the segment
+    index, the largest squared z of the difference of the weighted means before and after a
+    boundary, and whether any of the three passes its ``1 - STATIC_P`` quantile (the step's
+    with Bonferroni's correction over the ``segments - 1`` boundaries); the sample variance of
+    ``d`` (NaN below 3) and its count, and the rate (1 / mean interval, 0 below 3 intervals)."""
     T = spikes.shape[0]
     P = int(np.prod(spikes.shape[1:]))
-    seg = T // 8
+    k = int(segments)
+    seg = T // k
     pix, t = stats.spike_times(spikes)
     shared, se = stats.shared_variance(spikes, mask)
     clock_var = 0.0
@@ -273,25 +331,52 @@ def interval_dispersion(spikes: np.ndarray, mask: np.ndarray) -> tuple[np.ndarra
     dd = (tt[2:] - 2 * tt[1:-1] + tt[:-2])[same2]
     _, diff_var, n_d = stats.grouped_var(dd, pix[2:][same2], P, 3)
     v = np.maximum(np.nan_to_num(diff_var / (1.0 + 1.0 / np.maximum(n_d, 1))) / 2.0 - 0.25, 0.0)
-    inside = t < 8 * seg
-    key = pix[inside] * 8 + t[inside] // seg  # sorted: by pixel, then time
-    n = np.bincount(key, minlength=8 * P)
+    inside = t < k * seg
+    key = pix[inside] * k + t[inside] // seg  # sorted: by pixel, then time
+    n = np.bincount(key, minlength=k * P)
     ends = np.cumsum(n)
     has = n >= 3
-    first, last = np.zeros(8 * P), np.zeros(8 * P)
+    first, last = np.zeros(k * P), np.zeros(k * P)
     ti, fi = tt[inside], t[inside]
     first[has], last[has] = ti[ends[has] - n[has]], ti[ends[has] - 1]
-    span = np.zeros(8 * P)
+    span = np.zeros(k * P)
     span[has] = (fi[ends[has] - 1] - fi[ends[has] - n[has]]).astype(np.float64)
-    k = np.maximum(n - 1, 1).astype(np.float64)
-    m = ((last - first) / k).reshape(P, 8)
-    var = ((k * np.repeat(v, 8) + 1.0 / 6.0 + span * clock_var) / k ** 2).reshape(P, 8)
-    w = np.where(has.reshape(P, 8), 1.0 / var, 0.0)
+    kk = np.maximum(n - 1, 1).astype(np.float64)
+    m = ((last - first) / kk).reshape(P, k)
+    var = ((kk * np.repeat(v, k) + 1.0 / 6.0 + span * clock_var) / kk ** 2).reshape(P, k)
+    w = np.where(has.reshape(P, k), 1.0 / var, 0.0)
     wsum = w.sum(axis=1)
     mbar = (w * m).sum(axis=1) / np.maximum(wsum, 1e-300)
     chi2 = (w * (m - mbar[:, None]) ** 2).sum(axis=1)
-    dof = np.maximum(has.reshape(P, 8).sum(axis=1) - 1, 0)
-    return np.where(dof >= 2, chi2, 0.0), np.where(dof >= 2, dof, 0)
+    dof = np.maximum(has.reshape(P, k).sum(axis=1) - 1, 0)
+    tested = dof >= min(2, k - 1)
+    # linear trend: weighted regression of m on the segment index
+    idx = np.arange(k, dtype=np.float64)[None, :]
+    ibar = (w * idx).sum(axis=1) / np.maximum(wsum, 1e-300)
+    sxx = (w * (idx - ibar[:, None]) ** 2).sum(axis=1)
+    sxy = (w * (idx - ibar[:, None]) * (m - mbar[:, None])).sum(axis=1)
+    trend = np.where(sxx > 0, sxy ** 2 / np.maximum(sxx, 1e-300), 0.0)
+    # steps: weighted means before and after each boundary
+    cw, cwm = np.cumsum(w, axis=1)[:, :-1], np.cumsum(w * m, axis=1)[:, :-1]
+    aw, awm = wsum[:, None] - cw, (w * m).sum(axis=1)[:, None] - cwm
+    both = (cw > 0) & (aw > 0)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        diff = cwm / cw - awm / aw
+        z2 = np.where(both, diff ** 2 / (1.0 / cw + 1.0 / aw), 0.0)
+    step = z2.max(axis=1)
+    moving = ((chi2 > _chi2_quantile(dof, STATIC_P)) | (trend > _z2_quantile(STATIC_P))
+              | (step > _z2_quantile(STATIC_P / max(k - 1, 1))))
+    z = lambda a: np.where(tested, a, 0.0)  # noqa: E731
+    mean_isi, _, _ = stats.grouped_var((tt[1:] - tt[:-1])[same], pix[1:][same], P, 3)
+    return {"chi2": z(chi2), "dof": np.where(tested, dof, 0), "trend": z(trend), "step": z(step),
+            "moving": tested & moving, "diff_var": diff_var, "n_diff": n_d,
+            "rate": np.where(np.isfinite(mean_isi), 1.0 / np.maximum(np.nan_to_num(mean_isi), 1e-12), 0.0)}
+
+
+def _z2_quantile(p: float) -> float:
+    """Upper ``p`` quantile of the chi-square law with 1 degree of freedom (a squared standard
+    normal, two-sided)."""
+    return NormalDist().inv_cdf(1.0 - p / 2.0) ** 2
 
 
 def _chi2_quantile(dof: np.ndarray, p: float) -> np.ndarray:

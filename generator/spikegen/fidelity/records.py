@@ -8,6 +8,7 @@ as :class:`Fit`, and one :class:`Effect` per sensor effect. Arrays named ``[P]``
 from __future__ import annotations
 
 import math
+import os
 from dataclasses import dataclass, field
 from types import MappingProxyType
 from typing import Mapping
@@ -19,6 +20,7 @@ from . import stats
 from .synth import EFFECTS, envelope_size
 
 SIM_SEED = 20240617  # seed of the diagnosis' own simulations (the measured stream's is unknown)
+SIM_THREADS = max(1, min(os.cpu_count() or 1, 4))  # threads of those simulations (no effect on their bits)
 MIN_SPIKES = 3  # a pixel needs this many spikes for its rate to count
 MIN_COHERENCE = 0.9  # flicker: agreement of the sinusoid across four pixel groups (1 = identical)
 
@@ -110,6 +112,8 @@ class Context:
     db: np.ndarray  # [P] the baseline's dark rate, spikes per frame
     constant_fraction: float  # of pixels whose intervals never vary (noise-free reset to zero)
     static: np.ndarray | None = None  # [P] bool, pixels whose rate does not change (all with a reference)
+    untested: int = 0  # pixels with too few spikes to be tested for a change of rate ('self' only)
+    cache: dict = field(default_factory=dict)  # statistics computed once per diagnosis (diagnose._held_stats)
 
     @property
     def shape(self) -> tuple:

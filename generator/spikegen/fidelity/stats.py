@@ -115,13 +115,11 @@ def _isi_extremes(isi, isi_pix, P):
     """Shortest and longest interval of each pixel, ``[P]`` each (0 where it has none)."""
     isi_min = np.zeros(P)
     isi_max = np.zeros(P)
-    if isi.size:
-        order = np.lexsort((isi, isi_pix))  # by pixel, then interval
-        sp, si = isi_pix[order], isi[order]
-        firsts = np.r_[True, sp[1:] != sp[:-1]]
-        lasts = np.r_[sp[1:] != sp[:-1], True]
-        isi_min[sp[firsts]] = si[firsts]
-        isi_max[sp[lasts]] = si[lasts]
+    if isi.size:  # isi_pix is sorted (spike_times orders by pixel): one run of intervals per pixel
+        starts = np.flatnonzero(np.r_[True, isi_pix[1:] != isi_pix[:-1]])
+        owners = isi_pix[starts]
+        isi_min[owners] = np.minimum.reduceat(isi, starts)
+        isi_max[owners] = np.maximum.reduceat(isi, starts)
     return isi_min, isi_max
 
 
@@ -341,11 +339,13 @@ MEASURES = {
 }
 
 
-def discrepancies(measured: np.ndarray, simulated: np.ndarray, radiance_mean: np.ndarray) -> dict:
+def discrepancies(measured: np.ndarray, simulated: np.ndarray, radiance_mean: np.ndarray,
+                  measured_stats: PixelStats | None = None) -> dict:
     """Named measures (see :data:`MEASURES`) of how far ``simulated [T, H, W]`` is from
-    ``measured [T, H, W]``; ``radiance_mean [H, W]`` ranks the pixels from dark to bright.
+    ``measured [T, H, W]``; ``radiance_mean [H, W]`` ranks the pixels from dark to bright;
+    ``measured_stats``: :func:`pixel_stats` of ``measured`` if already computed.
     Smaller is better; 0 is a perfect match."""
-    pm, ps = pixel_stats(measured), pixel_stats(simulated)
+    pm, ps = measured_stats or pixel_stats(measured), pixel_stats(simulated)
     T = measured.shape[0]
     cm, cs = measured.reshape(T, -1).mean(0), simulated.reshape(T, -1).mean(0)
     ok = pm.n >= 2
