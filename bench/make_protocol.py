@@ -164,18 +164,18 @@ def _verdict(diff, ok: bool, n: int) -> str:
 
 
 def targets(rows: list) -> list[str]:
-    """The issue's targets per data set and intensity, object PSNR, seed means: the default
+    """The issue's targets per data set, iteration count and intensity, object PSNR, seed means: the default
     (spikelik, true maps) at least 3 dB above the port of the paper's method and above every
     baseline; with calibrated maps at most 0.5 dB below itself with true maps. The oracle's margin
     over the port is the largest any method of this field could show (it knows the images)."""
-    cells = defaultdict(list)
+    cells = defaultdict(list)  # runs with different iteration counts are not compared
     for r in rows:
-        cells[(r["resolution"], r["data"], r["sensor"])].append(r)
+        cells[(r["resolution"], r["data"], r["sensor"], r["iterations"])].append(r)
     out = ["| data | intensity | default − paper's port (≥ +3) | default − best baseline (> 0) | "
            "calibrated − true maps (≥ −0.5) | oracle − paper's port (the field's ceiling) |",
            "|---|---|---|---|---|---|"]
-    for (res, data, sensor) in sorted(cells, key=lambda c: (-c[0], c[1], c[2])):
-        rs = cells[(res, data, sensor)]
+    for (res, data, sensor, iters) in sorted(cells, key=lambda c: (-c[0], c[1], c[2], c[3])):
+        rs = cells[(res, data, sensor, iters)]
         for i in INTENSITIES:
             d, nd = _mean(rs, "spikelik", "true maps", i)
             if d is None:
@@ -195,7 +195,7 @@ def targets(rows: list) -> list[str]:
                 best = "–"
             cal = _verdict(None if c is None else c - d, c is not None and c - d >= -0.5, min(nd, nc))
             ceiling = "–" if o is None or p is None else f"{o - p:+.2f}"
-            out.append(f"| {data}, {sensor}, {res} x {res} | i{i} | {paper} | {best} | {cal} | {ceiling} |")
+            out.append(f"| {data}, {sensor}, {res} x {res}, {iters} it | i{i} | {paper} | {best} | {cal} | {ceiling} |")
     return out if len(out) > 2 else []
 
 

@@ -19,9 +19,10 @@ def test_protocol_page_is_generated_from_the_results(tmp_path, monkeypatch):
         "bench/PROTOCOL.md is stale: run python bench/make_protocol.py"
 
 
-def _row(method, knowledge, obj, seed=0, intensity=64):
+def _row(method, knowledge, obj, seed=0, intensity=64, iterations=3000):
     return {"resolution": 400, "data": "lego", "sensor": "rsir", "intensity": intensity, "method": method,
-            "knowledge": knowledge, "seed": seed, "frames": 0, "metrics": {"psnr_object": obj}}
+            "knowledge": knowledge, "seed": seed, "frames": 0, "iterations": iterations,
+            "metrics": {"psnr_object": obj}}
 
 
 def test_targets_margins_and_verdicts():
@@ -31,8 +32,9 @@ def test_targets_margins_and_verdicts():
     rows += [_row("spikelik", "calibrated maps", 24.4)]
     rows += [_row("oracle", "ground-truth images", 26.1)]
     rows += [_row("spikelik", "true maps", 20.0, intensity=16)]
+    rows += [_row("spikelik", "true maps", 40.0, iterations=9000)]  # another iteration count: its own line
     table = make_protocol.targets(rows)
-    i64 = next(line for line in table if "| i64 |" in line)
+    i64 = next(line for line in table if "| i64 |" in line and "3000 it" in line)
     cells = [c.strip() for c in i64.split("|")[1:-1]]
     assert cells[2] == "+3.00 (met)"                                   # 25.1 - 22.1, three seeds each
     assert cells[3].startswith("-0.40 (not met; 1 of 3 seeds) vs tfi")  # the best baseline is tfi
@@ -42,3 +44,5 @@ def test_targets_margins_and_verdicts():
     i16 = next(line for line in table if "| i16 |" in line)
     assert [c.strip() for c in i16.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]
     assert not any("| i32 |" in line for line in table)                # no default run: no line
+    other = next(line for line in table if "9000 it" in line)         # not mixed into the 3000 means
+    assert [c.strip() for c in other.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]
