@@ -31,7 +31,7 @@ import sys
 import time
 from pathlib import Path
 
-from spikenerf.train import default_iters
+from spikenerf.config import default_iters
 
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_400"
@@ -166,7 +166,7 @@ def main() -> None:
     ap.add_argument("--methods", default=",".join(METHODS))
     ap.add_argument("--seeds", default="0,1,2")
     ap.add_argument("--iters", type=int, default=0, help="0 = the trainer's default for the resolution "
-                    "(spikenerf.train.default_iters); the number is stated in every row")
+                    "(spikenerf.config.default_iters); the number is stated in every row")
     ap.add_argument("--frames", type=int, default=0, help="train from the first w frames (0 = all)")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")

@@ -34,6 +34,8 @@ import tempfile
 import time
 from pathlib import Path
 
+from spikenerf.config import default_iters
+
 
 def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool) -> dict:
     """Train and evaluate one run in this process; the figures as a dict."""
@@ -92,7 +94,7 @@ def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("dataset", nargs="?", help="a 400 x 400 spike dataset (spikegen convert ... --sensor rsir)")
     ap.add_argument("--iters", type=int, default=0, help="0 = the trainer's default at each resolution "
-                    "(spikenerf.train.default_iters: 3000 at 100 x 100, 9000 at 400 x 400)")
+                    "(spikenerf.config.default_iters: 3000 at 100 x 100, 9000 at 400 x 400)")
     ap.add_argument("--eval-views", type=int, default=None, help="evaluate the first N held-out views (default all)")
     ap.add_argument("--out", type=Path, default=None, help="runs go here (default: a temporary folder)")
     ap.add_argument("--sparse", action="store_true", help="grids above 128^3 train with the lazy optimiser")
@@ -119,8 +121,6 @@ def main() -> None:
           f"{'lazy optimiser above 128^3' if args.sparse else 'dense Adam'}")
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         base = args.out or Path(tmp)
-        from spikenerf.train import default_iters
-
         plan = [(res, args.iters or default_iters(res, res)) for res in (100, 400)]
         if args.converge:
             plan += [(res, 3 * iters) for res, iters in reversed(plan)]

@@ -211,7 +211,7 @@ def test_training_crops_the_grid_to_the_object(dataset, tmp_path):
 
 
 def test_iterations_default_follows_the_image_size(dataset, tmp_path):
-    from spikenerf.train import ITERS_AT, default_iters
+    from spikenerf.config import ITERS_AT, default_iters
 
     (p100, n100), (p400, n400) = ITERS_AT
     assert default_iters(100, 100) == n100 and default_iters(400, 400) == n400

@@ -9,7 +9,7 @@ import click
 
 from spikegen.errors import SpikegenError
 
-from .config import SPACES, TrainConfig
+from .config import ITERS_AT, SPACES, TrainConfig
 from .methods import DEFAULT_METHOD, METHODS
 
 
@@ -38,7 +38,8 @@ def main():
               help="Supervision: the published method, an idealised variant and its ablation, the TFP/TFI "
                    "baselines, or the project's best.")
 @click.option("--iters", default=TrainConfig.iters, show_default=True, type=click.IntRange(min=0),
-              help="Training iterations; 0 = chosen from the image size (3000 at 100 x 100, 9000 at 400 x 400).")
+              help="Training iterations; 0 = chosen from the image size (" +
+                   ", ".join(f"{n} at {round(p ** 0.5)} x {round(p ** 0.5)}" for p, n in ITERS_AT) + ").")
 @click.option("--device", default="auto", show_default=True, type=click.Choice(["auto", "cpu", "cuda"]))
 @click.option("--resolution", default=0, type=click.IntRange(min=0),
               help="Train at this width (must divide the dataset's); 0 = the dataset's.")

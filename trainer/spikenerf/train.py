@@ -18,7 +18,7 @@ from spikegen.errors import InputError, SpikegenError
 from spikegen.spikeio import atomic_path, remove_stale_parts, write_json_atomic
 
 from . import ndc, neuron
-from .config import SPACES, TrainConfig
+from .config import SPACES, TrainConfig, default_iters
 from .data import load_dataset
 from .methods import METHODS
 from .model import GridField
@@ -43,20 +43,6 @@ def resolve_device(name: str) -> torch.device:
     if name not in ("cpu", "cuda"):
         raise InputError(f"--device must be auto, cpu or cuda, got {name!r}")
     return torch.device(name)
-
-
-# The default iteration count at two image sizes, chosen on the project's procedural lego (spikelik,
-# i64, 48 train views, scored on its 8 val views; docs/trainer.md "Iterations"), never on the real
-# lego's views: the best measured count at 100 x 100 and at 400 x 400. Between them it is
-# interpolated in log pixels; outside, the nearer one holds.
-ITERS_AT = ((100 * 100, 3000), (400 * 400, 9000))
-
-
-def default_iters(height: int, width: int) -> int:
-    """``--iters 0``: the iterations for an image of this size (ITERS_AT), a multiple of 100."""
-    (p0, n0), (p1, n1) = ITERS_AT
-    t = min(1.0, max(0.0, math.log(height * width / p0) / math.log(p1 / p0)))
-    return int(round(n0 * (n1 / n0) ** t / 100)) * 100
 
 
 def final_grid(cfg: TrainConfig, width: int) -> int:
@@ -225,7 +211,7 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> No
     made_in = "ndc" if ck.get("space") else "cube"
     if new["space"] != "auto" and new["space"] != made_in:
         raise InputError(f"{path}: checkpoint was made with space={old['space']!r} (its field is in "
-                         f"{'NDC' if ck.get('space') else 'the world cube'}), this run asks {new['space']!r}; "
+                         f"{'NDC' if made_in == 'ndc' else 'the world cube'}), this run asks {new['space']!r}; "
                          f"use another --out or the same settings")
 
 

@@ -53,11 +53,11 @@ from dataclasses import dataclass, field, replace
 import numpy as np
 
 from ..errors import InputError
-from ..sensor import Sensor, simulate
+from ..sensor import Sensor
 from . import heldout, stats
-from .effects import gated_effects, sensor_with
+from .effects import gated_effects, model_simulation, sensor_with
 from .ratefit import constant_interval_fraction, fit_flicker, fit_rate_model, self_refractory
-from .records import ENVELOPE_SIZE, GATES, SIM_SEED, SIM_THREADS, Context, Effect, Fit, RateFit, as_number  # noqa: F401
+from .records import ENVELOPE_SIZE, GATES, SIM_SEED, Context, Effect, Fit, RateFit, as_number  # noqa: F401
 from .structure import pixel_structure
 from .synth import EFFECTS
 from .unexplained import unexplained
@@ -188,8 +188,7 @@ def _with_evidence(effect: Effect, kept: bool, gain) -> Effect:
 
 def _held_score(ctx: Context, sensor: Sensor):
     """``(HeldOutScore, simulation [T, H, W])`` of ``sensor``."""
-    sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED,
-                   threads=SIM_THREADS)
+    sim = model_simulation(ctx, sensor)
     sim_stats = stats.pixel_stats(sim)
     held = slice(ctx.Tf, ctx.frames)
     modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, ctx.frames)

@@ -18,6 +18,12 @@ from .records import (GATES, MIN_COHERENCE, MIN_SPIKES, SIM_SEED, SIM_THREADS, C
                       rate_from_interval, unavailable)
 from .synth import EFFECTS
 
+def model_simulation(ctx: Context, sensor: Sensor) -> np.ndarray:
+    """``[T, H, W]``: ``sensor``'s stream of the diagnosis' reference radiance over the whole
+    recording (seed SIM_SEED, so every model is compared on the same draws)."""
+    return simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED, threads=SIM_THREADS)
+
+
 MODEL_VARIANCE_SHARE = 0.1  # shot noise must add this much to the model's own interval variance
 SPREAD_BINS = 8  # bins of the light rate in which gain and dark spread are separated
 JITTER_NOTE = ("interval variance 1 / (N_e lambda^2): a threshold jitter of relative SD 1 / sqrt(N_e) "
@@ -313,8 +319,7 @@ def _check_flicker_against_model(ctx: Context, fit: Fit, found: dict) -> Effect:
     fl = fit.flicker
     others = {k: v for k, v in found.items() if k != "flicker"}
     sensor = build_sensor(ctx, fit, others, electrons=0.0)
-    sim = simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED,
-                   threads=SIM_THREADS)[:ctx.Tf]
+    sim = model_simulation(ctx, sensor)[:ctx.Tf]
     own = abs(stats.sine_at(stats.population_signal(sim, fl.mask), fl.light, 1.0 / fl.period_frames))
     eff = found["flicker"]
     eff = replace(eff, parameters={**eff.parameters, "model_depth_at_period": own})
@@ -343,8 +348,7 @@ def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
     noise is independent from pixel to pixel; when the measured stream has a modulation shared
     by its pixels beyond the model's (:func:`_common_mode`), both streams' intervals are measured
     on their own population's clock (stats.population_clock), which removes it, first."""
-    sim = simulate(ctx.X, ctx.intensity, deterministic, frames=ctx.frames, seed=SIM_SEED,
-                   threads=SIM_THREADS)[:ctx.Tf]
+    sim = model_simulation(ctx, deterministic)[:ctx.Tf]
     common = _common_mode(ctx, fit, sim)
     meas, ps = ctx.meas, None
     if common["removed"]:
