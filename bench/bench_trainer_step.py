@@ -7,7 +7,8 @@ Prints, for synthetic but realistic inputs (points along rays, as the renderer m
    the main grid (128^3 x 2 channels) and the degree-1 SH grid (64^3 x 3). The trainer splits
    when ``M * 64 >= grid values``; the table shows the break-even that rule stands for.
 2. ``candidates``: making the packed samples of 2048 rays (``render._occupied_samples``) for a
-   field that fills its box (a hazy baseline) and for a compact object, gather vs broadcast.
+   field that fills its box (a hazy baseline) and for a compact object: in one pass, gather vs
+   broadcast, and the trainer's (empty blocks skipped first, where that pays).
 3. ``grid step``: the parts of a training step that scale with the grid, at the 400 x 400 grid
    (256^3 x 2 + SH 128^3 x 3) and the 100 x 100 one (128^3), dense (grid_sample, autograd's
    dense gradients, fused torch Adam, max-pooled occupancy: the trainer before issue 13; it
@@ -19,6 +20,10 @@ Usage::
     python bench/bench_trainer_step.py            # the tables (a few seconds on 2 cores)
     python bench/bench_trainer_step.py --reps 15  # steadier medians
     python bench/bench_trainer_step.py --only grid-step  # just table 3
+    python bench/bench_trainer_step.py --run RUN [--run RUN2]  # only the trained fields' table (below)
+
+4. ``--run RUN``: a trained run's field (its checkpoint): a training step's rendering and a held-out
+   view, samples made in one pass against empty blocks skipped first (``render._skip_blocks``).
 """
 from __future__ import annotations
 
@@ -83,8 +88,9 @@ def candidates_table(reps: int) -> None:
     pix = torch.randint(0, 100 * 100, (2048,), generator=gen)
     o, d = R.pixel_rays(pose[None].expand(2048, 4, 4), pix, 100, 100, focal)
     jitter = torch.rand(2048, generator=gen)
-    print(f"\npacked samples of 2048 rays, median of {reps} (ms)")
-    print(f"{'field':>28} {'samples/ray':>11} {'gather':>7} {'trainer':>8}")
+    print(f"\npacked samples of 2048 rays, median of {reps} (ms): one pass by gather, one pass as the trainer "
+          f"chooses (gather or broadcast), and the trainer's (empty blocks skipped first)")
+    print(f"{'field':>28} {'samples/ray':>11} {'gather':>7} {'one pass':>9} {'trainer':>8}")
     for name, occ_frac in (("fills its box (40 % occ.)", 0.4), ("compact object (box 1.5^3)", None)):
         if occ_frac is None:
             field.occupancy = torch.zeros(128, 128, 128, dtype=torch.bool)
@@ -95,9 +101,11 @@ def candidates_table(reps: int) -> None:
             field._update_box()
         step = field.step_ratio * field.voxel
         n = R._occupied_samples(field, o, d, step, jitter)[0].numel()
-        t_gather = _median_ms(lambda: R._occupied_samples(field, o, d, step, jitter, broadcast=False), reps)
+        t_gather = _median_ms(lambda: R._occupied_samples(field, o, d, step, jitter, broadcast=False, coarse=False),
+                              reps)
+        t_one = _median_ms(lambda: R._occupied_samples(field, o, d, step, jitter, coarse=False), reps)
         t_now = _median_ms(lambda: R._occupied_samples(field, o, d, step, jitter), reps)
-        print(f"{name:>28} {n / 2048:>11.1f} {t_gather:>7.1f} {t_now:>8.1f}")
+        print(f"{name:>28} {n / 2048:>11.1f} {t_gather:>7.1f} {t_one:>9.1f} {t_now:>8.1f}")
 
 
 def _step_parts(G: int, sparse: bool, points: int, reps: int) -> dict:
@@ -162,11 +170,72 @@ def grid_step_table(reps: int, points: int = 100_000) -> None:
         print(f"{part:>16} " + " ".join(f"{v:>14.1f}" for v in vals))
 
 
+def trained_table(run: str, reps: int) -> None:
+    """A trained run's field: a training step's rendering (2048 random rays of its training views,
+    jittered, forward + backward) and a full held-out view, with the samples made in one pass and
+    with empty blocks skipped first, interleaved, each pair checked equal to the bit. Times are this
+    process's CPU seconds (``time.process_time``; with one thread, what the work cost even when other
+    jobs share the cores and stretch its wall time)."""
+    import os
+
+    from spikenerf.data import load_dataset
+    from spikenerf.eval import checkpoint_camera, checkpoint_space, field_from_checkpoint
+    from spikenerf.train import load_checkpoint
+
+    ck = load_checkpoint(os.path.join(run, "checkpoint.pt"), "cpu")
+    field = field_from_checkpoint(ck, "cpu")
+    H, W, focal, bg = checkpoint_camera(ck)
+    space = checkpoint_space(ck)
+    ds = load_dataset(ck["config"]["dataset"])
+    poses = torch.stack([torch.as_tensor(v.pose, dtype=torch.float32) for v in ds.splits["train"]])
+    held = ds.splits.get("test") or ds.splits.get("val") or ds.splits["train"]
+    gen = torch.Generator().manual_seed(0)
+    worth = R._worth_skipping
+    times = {"step": ([], []), "view": ([], [])}
+    print(f"\n{run}: grid {field.dims}, {H} x {W}; torch threads {torch.get_num_threads()}; "
+          f"load average {os.getloadavg()[0]:.2f} at start")
+    for r in range(reps):
+        vi = torch.randint(0, len(poses), (2048,), generator=gen)
+        pix = torch.randint(0, H * W, (2048,), generator=gen)
+        jitter = torch.rand(2048, generator=gen)
+        o, d = R.pixel_rays(poses[vi], pix, H, W, focal)
+        pose = torch.as_tensor(held[r % len(held)].pose, dtype=torch.float32)
+        out = {}
+        for skip in (False, True):
+            R._worth_skipping = worth if skip else (lambda f: False)
+            field.grid.grad = None
+            t0 = time.process_time()
+            if space is None:
+                x = R.render_rays(field, o, d, jitter, background=bg)[0]
+            else:
+                x = R.render_ndc_rays(field, space, o, d, jitter, background=bg)[0][0]
+            x.sum().backward()
+            t1 = time.process_time()
+            img = R.render_image(field, pose, H, W, focal, background=bg, space=space)[0]
+            t2 = time.process_time()
+            times["step"][skip].append(t1 - t0)
+            times["view"][skip].append(t2 - t1)
+            out[skip] = (x.detach(), field.grid.grad.clone(), img)
+        R._worth_skipping = worth
+        assert all(torch.equal(a, b) for a, b in zip(out[False], out[True])), "the two ways differ"
+    for part, label in (("step", "render + backward, 2048 rays"), ("view", "one held-out view")):
+        one, two = (1000 * statistics.median(times[part][k]) for k in (False, True))
+        print(f"{label:>30}: one pass {one:8.1f} ms, empty blocks skipped {two:8.1f} ms, ratio {one / two:.2f} "
+              f"(CPU time, median of {reps})")
+    print(f"load average {os.getloadavg()[0]:.2f} at end; outputs and gradients equal to the bit")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--only", choices=["trilinear", "candidates", "grid-step"], default=None)
+    ap.add_argument("--run", action="append", default=[], help="also time a trained run's field (its folder)")
     args = ap.parse_args()
+    if args.run:
+        for run in args.run:
+            trained_table(run, args.reps)
+        if args.only is None:
+            return
     tables = {"trilinear": trilinear_table, "candidates": candidates_table, "grid-step": grid_step_table}
     for name, table in tables.items():
         if args.only in (None, name):

@@ -192,6 +192,76 @@ def test_packed_samples_equal_a_ray_by_ray_march(spread):
     assert torch.allclose(pts, torch.stack(expect_pts), atol=1e-5)
 
 
+@pytest.mark.parametrize("case", ["scattered", "compact", "two objects", "cropped", "inside", "long rays"])
+def test_skipping_empty_blocks_gives_the_same_samples_to_the_bit(case, monkeypatch):
+    """The two-pass walk (stretches of samples tested against the block mask first) returns
+    exactly the one-pass samples: same indices, same rays, same points bit for bit, same order;
+    for rays from outside and inside the box, with and without jitter, on a cropped grid, and
+    for rays whose direction is not a unit vector."""
+    import spikenerf.render as R
+    from spikenerf.render import SKIP_MAX_KEPT, _occupied_samples, _segment_length
+    gen = torch.Generator().manual_seed(3)
+    f = GridField(grid_size=65, final_size=65, bound=1.5)
+    with torch.no_grad():
+        f.grid[0, 0] = torch.randn(65, 65, 65, generator=gen) - (2.0 if case == "scattered" else 30.0)
+        x = torch.linspace(-1.5, 1.5, 65)
+        # a ball with holes plus one floater, or two such balls in opposite corners (empty space
+        # between them inside the box, where stretches are skipped next to occupied blocks)
+        for c, radius in (((-0.9, 0.35), (0.9, 0.35)) if case == "two objects" else ((0.0, 0.6),)):
+            if case == "scattered":
+                break
+            r = ((x[:, None, None] - c) ** 2 + (x[None, :, None] - c) ** 2 + (x[None, None, :] - c) ** 2).sqrt()
+            f.grid[0, 0][(r < radius) & (torch.rand(65, 65, 65, generator=gen) < 0.5)] = 5.0
+        if case in ("compact", "cropped", "inside", "long rays"):
+            f.grid[0, 0, 5, 60, 30] = 5.0
+    f.update_occupancy(1e-2)
+    if case == "cropped":
+        f.crop(torch.tensor([-0.9, -0.8, -0.7]), torch.tensor([0.8, 1.4, 0.9]))
+        f.update_occupancy(1e-2)
+    n = 300
+    origins = torch.randn(n, 3, generator=gen)
+    if case == "inside":
+        origins = origins * 0.3
+    else:
+        origins = 4.0 * origins / origins.norm(dim=-1, keepdim=True)
+    target = (0.9 if case == "two objects" else 0.5) * torch.randn(n, 3, generator=gen)
+    dirs = target - origins
+    dirs = dirs / dirs.norm(dim=-1, keepdim=True)
+    if case == "long rays":
+        dirs = dirs * 1.7  # samples 1.7 steps apart in space
+    step = f.step_ratio * f.voxel
+    assert _segment_length(f, dirs, step) > 1
+    for jitter in (None, torch.rand(n, generator=gen)):
+        one = _occupied_samples(f, origins, dirs, step, jitter, coarse=False)
+        assert one[0].numel() > 300
+        assert torch.equal(_occupied_samples(f, origins, dirs, step, jitter, coarse=False, broadcast=True)[2], one[2])
+        for never_hand_back in (True, False):
+            monkeypatch.setattr(R, "SKIP_MAX_KEPT", 1.0 if never_hand_back else SKIP_MAX_KEPT)
+            f._skip_probe = None
+            two = _occupied_samples(f, origins, dirs, step, jitter)
+            if never_hand_back:  # the samples came from the block pass
+                assert f._skip_probe[2] is False
+            for a, b in zip(one, two):
+                assert torch.equal(a, b)
+
+
+def test_block_mask_follows_the_occupancy_and_is_conservative():
+    """coarse_occupied is True wherever an occupied grid point lies within COARSE points of a
+    point's nearest grid point, and follows occupancy changes made in place or by replacement."""
+    from spikenerf.model import COARSE
+    f = GridField(grid_size=41, final_size=41, bound=1.5)
+    f.occupancy = torch.zeros(41, 41, 41, dtype=torch.bool)
+    pts = (torch.rand(4000, 3, generator=torch.Generator().manual_seed(4)) * 3.6 - 1.8)
+    assert not f.coarse_occupied(pts).any()
+    f.occupancy[17, 3, 40] = True  # in place
+    cell = f._cell(pts)
+    near = ((cell - torch.tensor([17.0, 3.0, 40.0])).abs() <= COARSE).all(-1)
+    assert near.any() and bool(f.coarse_occupied(pts)[near].all())
+    assert not f.coarse_occupied(pts)[((cell - torch.tensor([17.0, 3.0, 40.0])).abs() > 3 * COARSE).any(-1)].any()
+    f.occupancy = torch.zeros(41, 41, 41, dtype=torch.bool)  # replaced
+    assert not f.coarse_occupied(pts).any()
+
+
 def test_fitted_box_ignores_a_floater_and_the_crop_keeps_the_field():
     """The box of the solid grid points less their extreme 0.1 % per axis: one isolated solid
     voxel far away (a floater, 1 of 1332) does not stretch it, faint haze does not count; cropping

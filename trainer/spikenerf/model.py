@@ -161,17 +161,53 @@ class GridField(nn.Module):
         x = torch.sigmoid(self.mlp(torch.cat([vals[:, 1:], pe], dim=-1)).squeeze(-1))
         return sigma, x
 
+    def _cell(self, points: torch.Tensor) -> torch.Tensor:
+        """Float indices [M, 3] of the grid point nearest each world point, clamped into the grid
+        (points outside the grid's box get the nearest face's)."""
+        X, Y, Z = self.dims
+        top = points.new_tensor([X - 1, Y - 1, Z - 1])
+        cell = ((points - self.aabb[0]) * (1 / self.voxel)).round_().clamp_(min=0)
+        return torch.minimum(cell, top)
+
     def occupied(self, points: torch.Tensor) -> torch.Tensor:
         """bool [M]: the nearest grid point of each world point is marked occupied (points outside
         the grid's box read the nearest face)."""
         X, Y, Z = self.dims
-        top = points.new_tensor([X - 1, Y - 1, Z - 1])
-        cell = ((points - self.aabb[0]) * (1 / self.voxel)).round_().clamp_(min=0)
-        cell = torch.minimum(cell, top)
+        cell = self._cell(points)
         if X * Y * Z > 2 ** 24:  # the flat index below is exact in float32 only up to 2^24
             cell = cell.double()
         flat = (cell @ cell.new_tensor([Y * Z, Z, 1.0])).long()  # one dot product
         return self.occupancy.reshape(-1)[flat]
+
+    def coarse_occupied(self, points: torch.Tensor) -> torch.Tensor:
+        """bool [M], a conservative :meth:`occupied` for a neighbourhood: True wherever a point
+        whose nearest grid point lies within ``COARSE`` grid points (per axis) of this point's
+        nearest grid point may be occupied. So a False lets the renderer skip every sample of a
+        stretch of ray that stays that close (render._occupied_samples).
+
+        The grid points are taken in blocks of ``COARSE`` per axis; a block is marked when it, or a
+        block next to it (3 x 3 x 3), holds an occupied point. Two indices at most ``COARSE`` apart
+        fall in the same or neighbouring blocks, hence the guarantee. The block mask is cached and
+        made again when ``occupancy`` is replaced or changed in place."""
+        blocks = self._coarse_mask()
+        Xc, Yc, Zc = blocks.shape
+        b = torch.div(self._cell(points), COARSE, rounding_mode="floor")
+        flat = (b @ b.new_tensor([Yc * Zc, Zc, 1.0])).long()  # exact: blocks are 1/COARSE^3 of the grid
+        return blocks.reshape(-1)[flat]
+
+    def _coarse_mask(self) -> torch.Tensor:
+        occ = self.occupancy
+        cached = getattr(self, "_coarse_cache", None)
+        if cached is not None and cached[0] is occ and cached[1] == occ._version:
+            return cached[2]
+        X, Y, Z = occ.shape
+        Xc, Yc, Zc = (-(-n // COARSE) for n in (X, Y, Z))
+        padded = occ.new_zeros(Xc * COARSE, Yc * COARSE, Zc * COARSE)
+        padded[:X, :Y, :Z] = occ
+        blocks = padded.view(Xc, COARSE, Yc, COARSE, Zc, COARSE).any(5).any(3).any(1)
+        blocks = _dilate(blocks)
+        self._coarse_cache = (occ, occ._version, blocks)
+        return blocks
 
     @torch.no_grad()
     def update_occupancy(self, threshold: float = 1e-4) -> float:
@@ -297,6 +333,7 @@ class GridField(nn.Module):
         return total
 
 
+COARSE = 8  # block edge, in grid points, of coarse_occupied
 CPU_SPLIT = 2  # points are sampled as this many batches on the CPU (a fixed number: bit-reproducible)
 
 
