@@ -46,3 +46,21 @@ def test_targets_margins_and_verdicts():
     assert not any("| i32 |" in line for line in table)                # no default run: no line
     other = next(line for line in table if "9000 it" in line)         # not mixed into the 3000 means
     assert [c.strip() for c in other.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]
+
+
+def test_missing_counts_only_runs_at_the_default_iteration_count():
+    """At 400 x 400 the default is 9000 iterations: a run at 3000 does not fill its planned slot, one at 9000 does;
+    a run from the first w frames does not either."""
+    old = [_row("spikelik", "true maps", 25.0, seed=s) for s in range(3)]           # 3000 iterations
+    new = [_row("spikelik", "true maps", 25.0, seed=s, iterations=9000) for s in range(2)]
+    part = [dict(_row("spikelik", "true maps", 25.0, seed=2, iterations=9000), frames=64)]
+
+    def left(rows):
+        line = next(x for x in make_protocol.missing(rows) if "lego, rsir, 400 x 400" in x)
+        assert "at 9000 iterations" in line
+        return int(line.split(": ")[1].split(" of ")[0])
+
+    assert left(old) == left([]) == 63
+    assert left(old + new + part) == 61
+    note = make_protocol.iterations_note(old + new)
+    assert "2 runs at the default 9000" in note and "3 at 3000" in note
