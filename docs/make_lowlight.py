@@ -42,10 +42,6 @@ def table(rows, head):
     return "\n".join(out)
 
 
-def _sd_rows(m):
-    return float(np.std(m, axis=1).mean())
-
-
 def study_motion(data, md, res):
     """Shift of the image along rows and columns per window, measured and in the ideal sensor's
     simulation of the same mean rates (the estimator's noise floor)."""
@@ -108,8 +104,10 @@ def study_rowmap(data, md, res):
     ideal_left = maps["ideal sensor with the fitted motion / fitted motion"]
     spec = np.abs(np.fft.rfft(left - left.mean(axis=0), axis=1)) ** 2
     spec_i = np.abs(np.fft.rfft(ideal_left - ideal_left.mean(axis=0), axis=1)) ** 2
-    res["left"] = (float(np.std(left)), float(np.std(ideal_left)), float(spec[:, 1:].mean()), float(spec_i[:, 1:].mean()))
-    show = ["low light, measured", "low light, measured / fitted motion", "ideal sensor, same mean rates", "car, measured"]
+    res["left"] = (float(np.std(left)), float(np.std(ideal_left)), float(spec[:, 1:].mean()),
+                   float(spec_i[:, 1:].mean()))
+    show = ["low light, measured", "low light, measured / fitted motion", "ideal sensor, same mean rates",
+            "car, measured"]
 
     def draw(ax):
         H = max(maps[k].shape[1] for k in show)
@@ -269,8 +267,8 @@ def conclusions(md, res):
            "passes: its consecutive intervals are then positively correlated and vary more than shot noise makes "
            "them, which the shot-noise fit reads as a low N_e.",
            "- **The low-light recording against the car's N_e** (trend removed, each pixel's quadratic): " +
-           "; ".join(lines) + ". The car's own background reads N_e {:.3g} +- {:.2g} by the same measure".format(*res["car_implied"]) +
-           _agreement(res),
+           "; ".join(lines) + ". The car's own background reads N_e {:.3g} +- {:.2g} by the same "
+           "measure".format(*res["car_implied"]) + _agreement(res),
            "- Global flicker: the windows' mean over rows (section 2). Dark-current shot noise and threshold "
            "jitter time like shot noise (the same CV at every rate, consecutive intervals not positively "
            "correlated); neither they nor a readout noise independent from frame to frame make a row's rate "
@@ -303,6 +301,15 @@ def main(argv=None):
     study_rowmap(data, md, res)
     study_intervals(data, md, res)
     conclusions(md, res)
+    md += ["## 5. How the simulator can carry it (proposal, nothing changed here)", "",
+           "The motion belongs to the scene, not to the sensor: `spikegen.sensor.simulate` already takes the "
+           "radiance as sub-frames `[K, H, W]`, and the simulations above run the fitted motion that way "
+           "(`drift.expected_rates`). A row phase for the sensor's flicker (`flicker_depth`, "
+           "`flicker_period_frames`) would model a display scanning the rows, which section 2 does not find. "
+           "What the measurement side would need: `spikegen diagnose --reference self` to look for a motion of the "
+           "whole image (`drift.fit_drift`) before it fits temporal noise, and to judge temporal noise on the "
+           "pixels the motion hardly changes, with each pixel's trend removed, as section 3 does; the "
+           "`calibrated` preset's N_e is then the car's.", ""]
     load = os.getloadavg()[0]
     md += [f"_Generated {time.strftime('%Y-%m-%d %H:%M', time.gmtime())} UTC in {time.time() - t0:.0f} s "
            f"(load average {load:.1f})._", ""]
