@@ -378,6 +378,10 @@ def study_lowlight(real, md, results):
     hot = diag.effect("hot_pixels")
     md += ["## 4. The low-light recording", "",
            f"`uhsr_lowlight_250x250.npz` ({T} frames, mean rate {uh.mean():.4f}).", "",
+           "Why: the image of the display moves on the sensor by about 7 rows during the recording; with each "
+           "pixel's trend removed, "
+           "the pixels the motion hardly changes read the car's N_e (docs/lowlight.md, `python "
+           "docs/make_lowlight.py`).", "",
            table(rows, ["stream", "mean rate", "pixels without a spike", "1st percentile rate", "median ISI CV (>= 4 ISIs)"]),
            "", f"`spikegen diagnose --reference self` on it: detected {', '.join(diag.detected) or 'nothing'}; "
            f"shot noise N_e = {_fmt(shot.parameters.get('electrons'))} (z = {shot.z:.3g}); hot pixels: "
