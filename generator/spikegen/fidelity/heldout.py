@@ -165,6 +165,11 @@ def score(measured: np.ndarray, simulated: np.ndarray, sim_stats: stats.PixelSta
     for w in lengths:
         per_pixel = per_pixel + _count_loglik(measured, simulated, sim_stats, mask, w, static_reference,
                                               modulation) / len(lengths)
+    return finish_score(per_pixel, mask)
+
+
+def finish_score(per_pixel: np.ndarray, mask: np.ndarray) -> HeldOutScore:
+    """The :class:`HeldOutScore` of the pixels of ``mask [P]`` from every pixel's nats ``[P]``."""
     per_pixel = np.where(mask, per_pixel, 0.0)
     return HeldOutScore(float(per_pixel[mask].mean()) if mask.any() else 0.0, per_pixel)
 
@@ -179,14 +184,21 @@ def _count_loglik(measured, simulated, sim_stats, mask, w: int, static_reference
         m = w * rate[None, :] * modulation.window_factor(w, T - Th, c.shape[0])
         v = count_variance(simulated, w, True, modulation) * (1.0 + w / T)
     elif static_reference:
-        pop = s[:, mask].sum(axis=1)
-        factor = pop / max(pop.mean(), 1e-12)
         rate = simulated.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
-        m = factor[:, None] * (w * rate)[None, :]
         v = count_variance(simulated, w, True) * (1.0 + w / T)  # the simulated rate's own noise
+        return count_loglik_given(c, s[:, mask].sum(axis=1), rate, w, v)
     else:
         m = s
         v = 2.0 * count_variance(simulated, w, False)  # m is one draw
+    return (-0.5 * (np.log(2 * np.pi * v) + (c - m) ** 2 / v)).sum(axis=0)
+
+
+def count_loglik_given(c: np.ndarray, pop: np.ndarray, rate: np.ndarray, w: int, v: np.ndarray) -> np.ndarray:
+    """``[P]`` summed log density of the measured window counts ``c [n, P]`` with a static
+    reference: means ``w rate [P]`` times the window's population factor (``pop [n]``, the
+    simulated spikes of the window over the mask, over their mean), variances ``v [P]``."""
+    factor = pop / max(pop.mean(), 1e-12)
+    m = factor[:, None] * (w * rate)[None, :]
     return (-0.5 * (np.log(2 * np.pi * v) + (c - m) ** 2 / v)).sum(axis=0)
 
 

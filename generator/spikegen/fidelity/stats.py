@@ -348,9 +348,19 @@ def discrepancies(measured: np.ndarray, simulated: np.ndarray, radiance_mean: np
     pm, ps = measured_stats or pixel_stats(measured), pixel_stats(simulated)
     T = measured.shape[0]
     cm, cs = measured.reshape(T, -1).mean(0), simulated.reshape(T, -1).mean(0)
+    H, W = measured.shape[1:]
+    return discrepancy_measures(pm, ps, cm, cs, radiance_mean, H, W, isi_histogram(pm.isi_values, T),
+                                isi_histogram(ps.isi_values, T), population_counts(measured),
+                                population_counts(simulated))
+
+
+def discrepancy_measures(pm: PixelStats, ps: PixelStats, cm, cs, radiance_mean, H: int, W: int, hm, hs,
+                         popm, pops) -> dict:
+    """:func:`discrepancies` from its parts: the two streams' :func:`pixel_stats` (``isi_values``
+    only counted), mean counts per frame ``cm, cs [P]``, interval histograms ``hm, hs``
+    (:func:`isi_histogram`) and population counts ``popm, pops [T]`` (:func:`population_counts`)."""
     ok = pm.n >= 2
     rel = (ps.rate[ok] - pm.rate[ok]) / pm.rate[ok]
-    H, W = measured.shape[1:]
     colm, cols = cm.reshape(H, W).mean(0), cs.reshape(H, W).mean(0)
     good = colm > 0
     dark = np.asarray(radiance_mean).reshape(-1) <= np.quantile(radiance_mean, 0.1)
@@ -359,10 +369,10 @@ def discrepancies(measured: np.ndarray, simulated: np.ndarray, radiance_mean: np
         "column_profile_rmse": _rms(cols[good] / colm[good] - 1.0),
         "dark_rate_error": float(abs(cs[dark].mean() - cm[dark].mean())),
         "hot_pixel_error": float(np.mean(np.abs(cs - cm) > 0.03)),
-        "isi_histogram_tv": _isi_tv(pm.isi_values, ps.isi_values, T),
+        "isi_histogram_tv": histogram_tv(hm, hs),
         "isi_cv_error": _cv_error(pm, ps),
         "consecutive_fraction_error": float(abs(_frac_ones(pm) - _frac_ones(ps))),
-        "spectrum_log_rmse": _spectrum_error(measured, simulated),
+        "spectrum_log_rmse": _spectrum_error(popm, pops),
     }
 
 
@@ -371,12 +381,23 @@ def _rms(a) -> float:
     return float(np.sqrt(np.mean(a * a))) if a.size else 0.0
 
 
+def isi_histogram(isi: np.ndarray, T: int) -> np.ndarray:
+    """``int64 [T + 1]``: how many of the intervals ``isi`` (whole frames, of a stream of ``T``
+    frames) last each number of frames."""
+    return np.bincount(isi.astype(np.int64), minlength=T + 1)
+
+
+def histogram_tv(ha: np.ndarray, hb: np.ndarray) -> float:
+    """Total-variation distance of two interval histograms (:func:`isi_histogram`); 1 when one is
+    empty and the other not, 0 when both are."""
+    na, nb = int(ha.sum()), int(hb.sum())
+    if na == 0 or nb == 0:
+        return float(na != nb)
+    return float(0.5 * np.abs(ha / na - hb / nb).sum())
+
+
 def _isi_tv(a, b, T) -> float:
-    if a.size == 0 or b.size == 0:
-        return float(a.size != b.size)
-    ha = np.bincount(a.astype(np.int64), minlength=T + 1) / a.size
-    hb = np.bincount(b.astype(np.int64), minlength=T + 1) / b.size
-    return float(0.5 * np.abs(ha - hb).sum())
+    return histogram_tv(isi_histogram(a, T), isi_histogram(b, T))
 
 
 def _cv_error(pm: PixelStats, ps: PixelStats) -> float:
@@ -392,14 +413,20 @@ def _frac_ones(p: PixelStats) -> float:
     return float(p.ones.sum() / max(p.isi_values.size, 1))
 
 
+def population_counts(spikes: np.ndarray) -> np.ndarray:
+    """``int64 [T]``: spikes per frame of all pixels."""
+    return spikes.reshape(spikes.shape[0], -1).sum(axis=1, dtype=np.int64)
+
+
 def _spectrum_error(a, b, bands=16) -> float:
+    """From the population counts ``a, b [T]`` (:func:`population_counts`) of two streams."""
     pa, pb = _band_power(a, bands), _band_power(b, bands)
     return _rms(np.log10(pa + 1e-12) - np.log10(pb + 1e-12))
 
 
-def _band_power(spikes, bands):
-    T = spikes.shape[0]
-    s = spikes.reshape(T, -1).sum(axis=1, dtype=np.int64).astype(np.float64)
+def _band_power(counts, bands):
+    T = counts.shape[0]
+    s = counts.astype(np.float64)
     p = np.abs(np.fft.rfft(s - s.mean())) ** 2 / T
     edges = np.unique(np.geomspace(1, p.size, bands + 1).astype(int))
     return np.array([p[a:b].mean() for a, b in zip(edges[:-1], edges[1:])])

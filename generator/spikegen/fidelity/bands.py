@@ -1,0 +1,178 @@
+"""A model's simulation of the recording, scored a band of rows at a time (``spikegen diagnose``).
+
+A model's simulation of the whole recording is ``T x H x W`` bytes (2 GB for one second, 20000
+frames, of a 250 x 400 camera), and the timing statistics of all its spikes take several times
+that. The held-out score (:mod:`.heldout`), the discrepancy measures (stats.discrepancies) and
+the unexplained checks (:mod:`.unexplained`) need of it per-pixel statistics and sums over
+pixels of counts per frame or window only. So the simulation is made and reduced one band of
+rows at a time: the simulator draws each block of sensor.CHUNK_ROWS rows from its own random
+stream (sensor.simulate, ``rows``), so a band simulated alone holds the same spikes as those rows
+of the whole simulation; each pixel's statistics are computed by the same functions from its own
+spikes; sums over pixels (population counts) are of whole numbers, exact in any order. What needs
+every pixel (the held-out windows' population factor, row, column and mask means) is done after
+the pass, on the per-pixel arrays. tests/test_diagnose.py checks that a diagnosis in bands of
+8 rows gives the same JSON as one in a single band.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..sensor import CHUNK_ROWS, Sensor, simulate
+from . import heldout, stats
+from .records import SIM_SEED, SIM_THREADS, Context
+from .unexplained import checks_from_parts
+
+BAND_BYTES = 1 << 26  # bytes of one band of a dense stream [T, rows, W] (64 MiB) when no band is asked for
+
+
+def band_rows(frames: int, height: int, width: int, rows: int | None = None) -> int:
+    """Rows of a band: ``rows`` (a positive multiple of sensor.CHUNK_ROWS), or the most
+    (a multiple of CHUNK_ROWS, at least CHUNK_ROWS) whose dense stream fits in BAND_BYTES."""
+    if rows is None:
+        rows = max(CHUNK_ROWS, (BAND_BYTES // max(frames * width, 1)) // CHUNK_ROWS * CHUNK_ROWS)
+    elif rows <= 0 or rows % CHUNK_ROWS:
+        raise ValueError(f"band rows must be a positive multiple of {CHUNK_ROWS}, got {rows}")
+    return min(int(rows), height)
+
+
+def bands(height: int, rows: int):
+    """``(r0, r1)`` of each band of ``rows`` rows, top to bottom."""
+    return [(r0, min(height, r0 + rows)) for r0 in range(0, height, rows)]
+
+
+def simulate_rows(ctx: Context, sensor: Sensor, r0: int, r1: int) -> np.ndarray:
+    """``[T, r1 - r0, W]``: rows ``r0:r1`` of effects.model_simulation (the same draws)."""
+    return simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED, threads=SIM_THREADS,
+                    rows=(r0, r1))
+
+
+def model_pass(ctx: Context, sensor: Sensor, rows: int, measures: bool = False, checks: bool = False) -> dict:
+    """The held-out score of ``sensor`` (``"score"``: heldout.HeldOutScore, as heldout.score of its
+    whole simulation), with ``measures`` also ``"measures"`` (stats.discrepancies of its held-out
+    frames) and with ``checks`` ``"unexplained"`` (unexplained.unexplained), in one pass over
+    bands of ``rows`` rows of its simulation."""
+    T, Tf = ctx.frames, ctx.Tf
+    Th = T - Tf
+    H, W = ctx.shape
+    P = H * W
+    static_ref = ctx.X.shape[0] == 1
+    mask = ctx.static
+    modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, T)
+    lengths = heldout.window_lengths(Th)
+    pooled = static_ref and modulation is None  # the count means need the population factor of all pixels
+    interval_ll = np.zeros(P)
+    count_ll = {w: np.zeros(P) for w in lengths}
+    rate, cvar = np.zeros(P), {w: np.zeros(P) for w in lengths}
+    pop = {w: 0.0 for w in lengths}
+    acc = _Accumulators(P, Th) if (measures or checks) else None
+    for r0, r1 in bands(H, rows):
+        sl = slice(r0 * W, r1 * W)
+        sim = simulate_rows(ctx, sensor, r0, r1)
+        meas = ctx.spikes[Tf:, r0:r1]
+        sim_stats = stats.pixel_stats(sim)
+        band_mask = mask[sl]
+        if modulation is None:
+            interval_ll[sl] = heldout._interval_loglik(meas, sim_stats)
+            band_mod = None
+        else:
+            band_mod = heldout.Modulation(modulation.phi, modulation.share[sl])
+            interval_ll[sl] = heldout._clock_interval_loglik(meas, sim, band_mod)
+        for w in lengths:
+            if pooled:
+                s = heldout.window_counts(sim[T - Th:], w)
+                pop[w] = pop[w] + s[:, band_mask].sum(axis=1)
+                rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
+                cvar[w][sl] = heldout.count_variance(sim, w, True) * (1.0 + w / T)
+            else:
+                count_ll[w][sl] = heldout._count_loglik(meas, sim, sim_stats, band_mask, w, static_ref, band_mod)
+        if acc is not None:
+            acc.add(sl, meas, sim, band_mask, static_ref, measures, checks)
+        del sim
+    if pooled:  # heldout._count_loglik's static branch, with the factor of the whole population
+        for r0, r1 in bands(H, rows):
+            sl = slice(r0 * W, r1 * W)
+            for w in lengths:
+                c = heldout.window_counts(ctx.spikes[Tf:, r0:r1], w)
+                count_ll[w][sl] = heldout.count_loglik_given(c, pop[w], rate[sl], w, cvar[w][sl])
+    per_pixel = interval_ll
+    for w in lengths:
+        per_pixel = per_pixel + count_ll[w] / len(lengths)
+    out = {"score": heldout.finish_score(per_pixel, mask)}
+    if measures:
+        out["measures"] = acc.measures(ctx.X.mean(axis=0), H, W)
+    if checks:
+        out["unexplained"] = acc.unexplained(mask, H, W)
+    return out
+
+
+class _Accumulators:
+    """What stats.discrepancies and unexplained.unexplained take from the two streams, band by band."""
+
+    def __init__(self, P: int, Th: int):
+        self.Th = Th
+        self.fields = {}
+        self.spectrum = {"m": np.zeros(Th, dtype=np.int64), "s": np.zeros(Th, dtype=np.int64)}
+        self.hist = {k: np.zeros(Th + 1, dtype=np.int64) for k in ("m", "s", "m_mask", "s_mask")}
+        self.frame = {"c": 0.0, "s": 0.0}
+        self.lists = {k: [] for k in ("rm", "rs", "disp_d", "disp_s")}
+        self.P = P
+
+    def _put(self, name, sl, values):
+        if name not in self.fields:
+            self.fields[name] = np.zeros(self.P, dtype=np.asarray(values).dtype)
+        self.fields[name][sl] = values
+
+    def add(self, sl, meas, sim_full, mask, static_ref, measures, checks):
+        Th, T = self.Th, sim_full.shape[0]
+        sim = sim_full[T - Th:]
+        pm, ps = stats.pixel_stats(meas), stats.pixel_stats(sim)
+        hm, hs = stats.isi_histogram(pm.isi_values, Th), stats.isi_histogram(ps.isi_values, Th)
+        self.hist["m"] += hm
+        self.hist["s"] += hs
+        for k, p in (("m", pm), ("s", ps)):
+            for f in ("rate", "n", "n_isi", "isi_var", "isi_mean", "ones"):
+                self._put(f"{k}_{f}", sl, getattr(p, f))
+        self._put("cm", sl, meas.reshape(Th, -1).mean(0))
+        self._put("cs", sl, sim.reshape(Th, -1).mean(0))
+        self.spectrum["m"] += meas.reshape(Th, -1).sum(axis=1, dtype=np.int64)
+        self.spectrum["s"] += sim.reshape(Th, -1).sum(axis=1, dtype=np.int64)
+        if not checks:
+            return
+        c = meas.reshape(Th, -1).sum(axis=0, dtype=np.int64).astype(np.float64)
+        s = sim.reshape(Th, -1).sum(axis=0, dtype=np.int64).astype(np.float64)
+        self._put("c", sl, c)
+        self._put("s", sl, s)
+        self._put("var", sl, 2.0 * heldout.count_variance(sim_full, Th, static_ref))
+        self._put("var4", sl, heldout.count_variance(sim_full, 4, True))
+        w4 = [heldout.window_counts(x, 4)[:, mask] for x in (meas, sim)]
+        self.frame["c"] = self.frame["c"] + w4[0].sum(axis=1)
+        self.frame["s"] = self.frame["s"] + w4[1].sum(axis=1)
+        self.frame["n"] = w4[0].shape[0]
+        c16, s16 = (heldout.window_counts(x, 16)[:, mask] for x in (meas, sim))
+        self.frame["n16"] = c16.shape[0]
+        if c16.shape[0] >= 4:
+            self.lists["disp_d"].append(c16.var(axis=0, ddof=1) - s16.var(axis=0, ddof=1))
+            self.lists["disp_s"].append(s16.var(axis=0, ddof=1))
+        for key, x, p in (("rm", meas, pm), ("rs", sim, ps)):
+            r = stats.serial_correlation(x)[mask & (p.isi_var >= 2.0) & (p.n_isi >= 8)]
+            self.lists[key].append(r)
+        keep = np.flatnonzero(mask)
+        for key, x, p in (("m_mask", meas, pm), ("s_mask", sim, ps)):
+            self.hist[key] += stats.isi_histogram(p.isi_values[np.isin(stats.interval_pixels(x), keep)], Th)
+
+    def _stats(self, k):
+        f = self.fields
+        return stats.PixelStats(self.Th, f[f"{k}_n"], None, None, f[f"{k}_rate"], f[f"{k}_isi_mean"],
+                                f[f"{k}_isi_var"], None, None, None, f[f"{k}_ones"], f[f"{k}_n_isi"],
+                                np.empty(int(self.hist[k].sum())), None)
+
+    def measures(self, radiance_mean, H, W) -> dict:
+        """stats.discrepancies of the held-out frames, from the accumulated parts."""
+        return stats.discrepancy_measures(self._stats("m"), self._stats("s"), self.fields["cm"], self.fields["cs"],
+                                          radiance_mean, H, W, self.hist["m"], self.hist["s"],
+                                          self.spectrum["m"], self.spectrum["s"])
+
+    def unexplained(self, mask, H, W) -> list:
+        cat = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in self.lists.items()}
+        return checks_from_parts(self.fields["c"], self.fields["s"], self.fields["var"], mask, H, W,
+                                 self.frame, self.fields["var4"], cat, self.hist["m_mask"], self.hist["s_mask"])
