@@ -25,6 +25,35 @@ from .unexplained import checks_from_parts
 BAND_BYTES = 1 << 26  # bytes of one band of a dense stream [T, rows, W] (64 MiB) when no band is asked for
 
 
+class Stream:
+    """A measured stream ``[T, H, W]`` of 0/1, read a band of rows at a time: held dense
+    (``uint8``) or packed, 8 pixels of a row a byte (``np.packbits(..., axis=-1,
+    bitorder="little")``, as spikeio's ``.npz`` keeps it: an eighth of the memory)."""
+
+    def __init__(self, shape: tuple, dense: np.ndarray | None = None, packed: np.ndarray | None = None):
+        self.shape = tuple(int(v) for v in shape)
+        self._dense, self._packed = dense, packed
+
+    @classmethod
+    def of(cls, spikes) -> "Stream":
+        """``spikes`` itself if a :class:`Stream`, else the dense array ``[T, H, W]`` as one."""
+        return spikes if isinstance(spikes, Stream) else cls(np.shape(spikes), dense=spikes)
+
+    @property
+    def frames(self) -> int:
+        return self.shape[0]
+
+    def rows(self, r0: int, r1: int, t0: int = 0, t1: int | None = None) -> np.ndarray:
+        """``uint8 [t1 - t0, r1 - r0, W]``: frames ``t0:t1`` of rows ``r0:r1`` (a view of a dense stream)."""
+        if self._dense is not None:
+            return self._dense[t0:t1, r0:r1]
+        return np.unpackbits(self._packed[t0:t1, r0:r1], axis=-1, bitorder="little", count=self.shape[2])
+
+    def dense(self) -> np.ndarray:
+        """The whole stream, ``uint8 [T, H, W]`` (unpacked if packed)."""
+        return self._dense if self._dense is not None else self.rows(0, self.shape[1])
+
+
 def band_rows(frames: int, height: int, width: int, rows: int | None = None) -> int:
     """Rows of a band: ``rows`` (a positive multiple of sensor.CHUNK_ROWS), or the most
     (a multiple of CHUNK_ROWS, at least CHUNK_ROWS) whose dense stream fits in BAND_BYTES."""
@@ -46,12 +75,12 @@ def simulate_rows(ctx: Context, sensor: Sensor, r0: int, r1: int) -> np.ndarray:
                     rows=(r0, r1))
 
 
-def model_pass(ctx: Context, sensor: Sensor, rows: int, measures: bool = False, checks: bool = False) -> dict:
+def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: bool = False) -> dict:
     """The held-out score of ``sensor`` (``"score"``: heldout.HeldOutScore, as heldout.score of its
     whole simulation), with ``measures`` also ``"measures"`` (stats.discrepancies of its held-out
     frames) and with ``checks`` ``"unexplained"`` (unexplained.unexplained), in one pass over
-    bands of ``rows`` rows of its simulation."""
-    T, Tf = ctx.frames, ctx.Tf
+    bands of ``ctx.rows`` rows of its simulation."""
+    T, Tf, rows = ctx.frames, ctx.Tf, ctx.rows
     Th = T - Tf
     H, W = ctx.shape
     P = H * W
@@ -68,7 +97,7 @@ def model_pass(ctx: Context, sensor: Sensor, rows: int, measures: bool = False, 
     for r0, r1 in bands(H, rows):
         sl = slice(r0 * W, r1 * W)
         sim = simulate_rows(ctx, sensor, r0, r1)
-        meas = ctx.spikes[Tf:, r0:r1]
+        meas = ctx.spikes.rows(r0, r1, Tf)
         sim_stats = stats.pixel_stats(sim)
         band_mask = mask[sl]
         if modulation is None:
@@ -92,7 +121,7 @@ def model_pass(ctx: Context, sensor: Sensor, rows: int, measures: bool = False, 
         for r0, r1 in bands(H, rows):
             sl = slice(r0 * W, r1 * W)
             for w in lengths:
-                c = heldout.window_counts(ctx.spikes[Tf:, r0:r1], w)
+                c = heldout.window_counts(ctx.spikes.rows(r0, r1, Tf), w)
                 count_ll[w][sl] = heldout.count_loglik_given(c, pop[w], rate[sl], w, cvar[w][sl])
     per_pixel = interval_ll
     for w in lengths:
@@ -176,3 +205,78 @@ class _Accumulators:
         cat = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in self.lists.items()}
         return checks_from_parts(self.fields["c"], self.fields["s"], self.fields["var"], mask, H, W,
                                  self.frame, self.fields["var4"], cat, self.hist["m_mask"], self.hist["s_mask"])
+
+
+# ---------------------------------------------------------------------- the measured stream's fit window
+def pixel_stats(stream: Stream, rows: int, t0: int = 0, t1: int | None = None, clock=None) -> stats.PixelStats:
+    """stats.pixel_stats of frames ``t0:t1`` of ``stream``, band by band (the same numbers), but
+    without the pooled intervals (``isi_values`` is None: they are as many as the spikes)."""
+    parts = [stats.pixel_stats(stream.rows(r0, r1, t0, t1), clock) for r0, r1 in bands(stream.shape[1], rows)]
+    for p in parts:
+        p.isi_values = None
+    return join_stats(parts)
+
+
+def join_stats(parts: list) -> stats.PixelStats:
+    """One stats.PixelStats of the pixels of ``parts`` (band by band, top to bottom); their
+    ``isi_values`` joined (None if any is None)."""
+    def cat(name):
+        values = [getattr(p, name) for p in parts]
+        return None if any(v is None for v in values) else np.concatenate(values)
+
+    fields = ("n", "first", "last", "rate", "isi_mean", "isi_var", "span_var", "isi_min", "single", "ones", "n_isi",
+              "isi_values", "diff_var")
+    return stats.PixelStats(parts[0].frames, *(cat(f) for f in fields))
+
+
+def window_rate(stream: Stream, rows: int, t0: int, t1: int) -> np.ndarray:
+    """stats.window_rate of frames ``t0:t1`` of ``stream``, band by band."""
+    return np.concatenate([stats.window_rate(stream.rows(r0, r1, t0, t1)) for r0, r1 in bands(stream.shape[1], rows)])
+
+
+def population_signal(stream: Stream, mask: np.ndarray, rows: int, t0: int = 0, t1: int | None = None) -> np.ndarray:
+    """stats.population_signal of frames ``t0:t1`` of ``stream`` over ``mask [P]``: whole numbers
+    summed band by band (the same numbers)."""
+    W = stream.shape[2]
+    mask = np.asarray(mask).reshape(-1)
+    total = 0
+    for r0, r1 in bands(stream.shape[1], rows):
+        band = stream.rows(r0, r1, t0, t1)
+        total = total + band.reshape(band.shape[0], -1)[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
+    return np.asarray(total).astype(np.float64)
+
+
+def quadrant_counts(stream: Stream, mask: np.ndarray, rows: int, t1: int) -> np.ndarray:
+    """stats.quadrant_counts of the first ``t1`` frames of ``stream`` over ``mask [P]``, band by band."""
+    H = stream.shape[1]
+    return sum(stats.quadrant_counts(stream.rows(r0, r1, 0, t1), mask, top=r0, height=H) for r0, r1 in bands(H, rows))
+
+
+def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | None = None,
+                    clock_mask: np.ndarray | None = None) -> dict:
+    """Of ``sensor``'s simulation's fit window (its first ``Tf`` frames), band by band:
+    ``"stats"`` (stats.pixel_stats, without ``isi_values``), with ``mask [P]`` also ``"quadrants"``
+    (stats.quadrant_counts) and ``"signal"`` (stats.population_signal over ``mask``), with
+    ``clock_mask`` the stats measured on the population clock of those pixels instead (two passes)."""
+    H, W = ctx.shape
+    Tf = ctx.Tf
+    clock = None
+    if clock_mask is not None:
+        signal = 0
+        for r0, r1 in bands(H, rows):
+            band = simulate_rows(ctx, sensor, r0, r1)[:Tf]
+            signal = signal + band.reshape(Tf, -1)[:, clock_mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
+        clock = stats.clock_of(np.asarray(signal).astype(np.float64))
+    parts, quads, signal = [], 0, 0
+    for r0, r1 in bands(H, rows):
+        band = simulate_rows(ctx, sensor, r0, r1)[:Tf]
+        p = stats.pixel_stats(band, clock)
+        p.isi_values = None
+        parts.append(p)
+        if mask is not None:
+            quads = quads + stats.quadrant_counts(band, mask, top=r0, height=H)
+            signal = signal + band.reshape(Tf, -1)[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
+    out = {"stats": join_stats(parts)}
+    if mask is not None:
+        out["quadrants"], out["signal"] = quads, np.asarray(signal).astype(np.float64)
+    return out

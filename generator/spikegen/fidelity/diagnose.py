@@ -112,15 +112,15 @@ def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | 
     not depend on it)."""
     spikes = _check_stream(spikes, intensity)
     T, H, W = spikes.shape
-    rows = bands.band_rows(T, H, W, band_rows)
     baseline = (baseline or Sensor(name="ideal")).sized(H, W)
     step = progress or (lambda msg: None)
     step("timing statistics")
-    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)))
+    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)),
+                   bands.band_rows(T, H, W, band_rows))
     step("mean-rate model")
     fit = _fit_all(ctx)
     step("effects, chosen by held-out score")
-    effects, extended, held = _choose(ctx, fit, rows)
+    effects, extended, held = _choose(ctx, fit)
     step("held-out comparison")
     bm, em = held["measures"]  # the baseline's and the extended sensor's
     n_static = int(ctx.static.sum())
@@ -140,31 +140,32 @@ def score_sensor(spikes: np.ndarray, radiance, intensity: float, sensor: Sensor,
     spikes = _check_stream(spikes, intensity)
     T, H, W = spikes.shape
     baseline = (baseline or Sensor(name="ideal")).sized(H, W)
-    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)))
-    return bands.model_pass(ctx, sensor.sized(H, W), bands.band_rows(T, H, W, band_rows))["score"]
+    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)),
+                   bands.band_rows(T, H, W, band_rows))
+    return bands.model_pass(ctx, sensor.sized(H, W))["score"]
 
 
-def _choose(ctx: Context, fit: Fit, rows: int) -> tuple[list, Sensor, dict]:
+def _choose(ctx: Context, fit: Fit) -> tuple[list, Sensor, dict]:
     """The gated effects, then backward elimination by held-out score (heldout.select); returns
     the verdicts (dropped effects undetected, with a note), the extended sensor, and
     ``{"doc": the JSON "heldout" entry, "unexplained": entries, "measures": (the baseline's
     discrepancy measures, the extended sensor's)}``. Each model's simulation is made and
-    scored in bands of ``rows`` rows (bands.model_pass)."""
+    scored in bands of rows (bands.model_pass)."""
     found, electrons = gated_effects(ctx, fit)
     cache = {}
 
     def evaluate(on):
         key = frozenset(on)
         if key not in cache:
-            cache[key] = bands.model_pass(ctx, sensor_with(ctx, fit, found, set(on), electrons), rows)["score"]
+            cache[key] = bands.model_pass(ctx, sensor_with(ctx, fit, found, set(on), electrons))["score"]
         return cache[key]
 
     gated = [n for n in EFFECTS if found[n].detected]
     kept, evidence = heldout.select(gated, evaluate, {n: heldout.penalty(n, found[n].parameters) for n in gated})
     effects = [_with_evidence(found[n], n in kept, evidence.get(n)) for n in EFFECTS]
     extended = sensor_with(ctx, fit, found, set(kept), electrons)
-    ideal_pass = bands.model_pass(ctx, ctx.baseline, rows, measures=True)
-    fitted_pass = bands.model_pass(ctx, extended, rows, measures=True, checks=True)  # the kept model's again
+    ideal_pass = bands.model_pass(ctx, ctx.baseline, measures=True)
+    fitted_pass = bands.model_pass(ctx, extended, measures=True, checks=True)  # the kept model's again
     ideal, fitted = ideal_pass["score"], fitted_pass["score"]
     doc = {"measure": heldout.MEASURE, "ideal": as_number(ideal.mean), "fitted": as_number(fitted.mean),
            "higher_is_better": True, "window_frames": heldout.window_lengths(ctx.frames - ctx.Tf),
@@ -188,24 +189,26 @@ def _with_evidence(effect: Effect, kept: bool, gain) -> Effect:
                    note=f"passed its gates but does not improve the held-out score ({nats:+.3g} nats, SE {se:.3g})")
 
 
-def _check_stream(spikes, intensity) -> np.ndarray:
-    spikes = np.asarray(spikes)
-    if spikes.ndim != 3:
+def _check_stream(spikes, intensity) -> bands.Stream:
+    """``spikes`` (an array ``[T, H, W]`` or a bands.Stream) as a bands.Stream, checked."""
+    spikes = spikes if isinstance(spikes, bands.Stream) else np.asarray(spikes)
+    if len(spikes.shape) != 3:
         raise InputError(f"measured stream must be [T, H, W], got shape {spikes.shape}")
     T = spikes.shape[0]
     if T < 50:
         raise InputError(f"measured stream has {T} frames; a diagnosis needs at least 50 (1000 recommended)")
     if not (math.isfinite(intensity) and intensity > 0):
         raise InputError(f"intensity must be a positive number, got {intensity}")
-    return spikes
+    return bands.Stream.of(spikes)
 
 
-def _context(spikes, radiance, intensity: float, baseline: Sensor, Tf: int) -> Context:
-    """Timing statistics of the first ``Tf`` frames and the reference radiance ``[K, H, W]``."""
+def _context(spikes: bands.Stream, radiance, intensity: float, baseline: Sensor, Tf: int, rows: int) -> Context:
+    """Timing statistics of the first ``Tf`` frames (read in bands of ``rows`` rows) and the
+    reference radiance ``[K, H, W]``."""
     T, H, W = spikes.shape
-    meas = stats.pixel_stats(spikes[:Tf])
+    meas = bands.pixel_stats(spikes, rows, 0, Tf)
     half = Tf // 2
-    halves = (stats.window_rate(spikes[:half]), stats.window_rate(spikes[half:Tf]))
+    halves = (bands.window_rate(spikes, rows, 0, half), bands.window_rate(spikes, rows, half, Tf))
     self_ref = isinstance(radiance, str)
     if self_ref:
         X = _self_radiance(meas.rate, intensity, baseline, H, W)
@@ -215,9 +218,10 @@ def _context(spikes, radiance, intensity: float, baseline: Sensor, Tf: int) -> C
         if X.ndim != 3 or X.shape[1:] != (H, W):
             raise InputError(f"reference radiance is {X.shape[-1]}x{X.shape[-2]}, the stream is {W}x{H}")
     Rb, db = baseline.maps(H, W)
-    static, tested = heldout.motion_test(spikes) if self_ref else (np.ones(H * W, dtype=bool),) * 2
+    # the motion test reads the whole stream at once (not yet in bands)
+    static, tested = heldout.motion_test(spikes.dense()) if self_ref else (np.ones(H * W, dtype=bool),) * 2
     return Context(spikes, X, intensity, baseline, Tf, meas, halves, self_ref, Rb.reshape(-1), db.reshape(-1),
-                   constant_interval_fraction(meas), static, int((~tested).sum()))
+                   constant_interval_fraction(meas), static, int((~tested).sum()), rows)
 
 
 def _self_radiance(rate, intensity, baseline, H, W):

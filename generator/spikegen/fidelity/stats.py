@@ -189,15 +189,43 @@ def shared_variance(spikes: np.ndarray, mask: np.ndarray, w: int = COMMON_WINDOW
     independently), and an object that moves over part of the image is not in every pair. The
     error is the largest of the pairs' ``sqrt(var_A var_B / (n - 1))`` over ``n`` windows."""
     T, H, W = spikes.shape[0], spikes.shape[1], int(np.prod(spikes.shape[2:]))
-    n = T // w
-    mask = np.asarray(mask).reshape(H, W)
-    quads = [mask[:H // 2, :W // 2], mask[:H // 2, W // 2:], mask[H // 2:, :W // 2], mask[H // 2:, W // 2:]]
-    if n < 4 or min(int(q.sum()) for q in quads) < 4:
+    if T // w < 4 or min(int(q[-1].sum()) for q in _quadrants(mask, H, W)) < 4:
         return 0.0, math.inf
-    windows = spikes[: n * w].reshape(n, w, H, W).sum(axis=1, dtype=np.int32)
+    return shared_variance_of(quadrant_counts(spikes.reshape(T, H, W), mask, w))
+
+
+def _quadrants(mask, H, W) -> list:
+    """``(r0, r1, c0, c1, mask of that quadrant)`` of the four quadrants of an ``H x W`` image."""
+    mask = np.asarray(mask).reshape(H, W)
+    return [(r0, r1, c0, c1, mask[r0:r1, c0:c1]) for r0, r1 in ((0, H // 2), (H // 2, H))
+            for c0, c1 in ((0, W // 2), (W // 2, W))]
+
+
+def quadrant_counts(spikes: np.ndarray, mask: np.ndarray, w: int = COMMON_WINDOW, top: int = 0,
+                    height: int | None = None) -> np.ndarray:
+    """``int64 [4, T // w]``: spikes of the pixels of ``mask`` in each quadrant of the image
+    (:func:`shared_variance`) in windows of ``w`` frames, counted in ``spikes [T, rows, W]``, the
+    rows ``top:top + rows`` of an image of ``height`` rows (default: the whole image) whose
+    ``mask`` is ``[height, W]`` (or ``[P]``). The counts of the bands of an image add up to its own."""
+    T, rows, W = spikes.shape
+    H = height or rows
+    n = T // w
+    windows = spikes[: n * w].reshape(n, w, rows, W).sum(axis=1, dtype=np.int32)
+    out = np.zeros((4, n), dtype=np.int64)
+    for k, (r0, r1, c0, c1, _) in enumerate(_quadrants(mask, H, W)):
+        a, b = max(r0, top) - top, min(r1, top + rows) - top
+        if a < b:
+            m = np.asarray(mask).reshape(H, W)[top + a: top + b, c0:c1]
+            out[k] = windows[:, a:b, c0:c1][:, m].sum(axis=1, dtype=np.int64)
+    return out
+
+
+def shared_variance_of(counts: np.ndarray) -> tuple[float, float]:
+    """:func:`shared_variance` from the quadrants' counts ``[4, n]`` (:func:`quadrant_counts`;
+    at least 4 windows and 4 pixels a quadrant)."""
+    n = counts.shape[1]
     rel = []
-    for r0, c0, q in ((0, 0, quads[0]), (0, W // 2, quads[1]), (H // 2, 0, quads[2]), (H // 2, W // 2, quads[3])):
-        pop = windows[:, r0: r0 + q.shape[0], c0: c0 + q.shape[1]][:, q].sum(axis=1, dtype=np.int64).astype(np.float64)
+    for pop in counts.astype(np.float64):
         rel.append(pop / max(float(pop.mean()), 1e-12) - 1.0)
     cov = [float((a * b).sum()) / (n - 1) for k, a in enumerate(rel) for b in rel[k + 1:]]
     var = [float((a * a).sum()) / (n - 1) for a in rel]
@@ -210,8 +238,12 @@ def population_clock(spikes: np.ndarray, mask: np.ndarray) -> np.ndarray:
     ``sum_{u <= t} S(u) / mean(S)`` with ``S`` its spikes per frame. Intervals measured on it
     lose a modulation of the light shared by all pixels (as a pixel of rate ``lambda phi(t)``
     fires every ``1 / lambda`` of ``sum phi``)."""
-    s = population_signal(spikes, mask)
-    return np.cumsum(s / max(float(s.mean()), 1e-12))
+    return clock_of(population_signal(spikes, mask))
+
+
+def clock_of(signal: np.ndarray) -> np.ndarray:
+    """:func:`population_clock` from the population signal ``[T]`` (:func:`population_signal`)."""
+    return np.cumsum(signal / max(float(signal.mean()), 1e-12))
 
 
 # ---------------------------------------------------------------------- population signal
