@@ -98,10 +98,9 @@ def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: boo
         sl = slice(r0 * W, r1 * W)
         sim = simulate_rows(ctx, sensor, r0, r1)
         meas = ctx.spikes.rows(r0, r1, Tf)
-        sim_stats = stats.pixel_stats(sim)
         band_mask = mask[sl]
         if modulation is None:
-            interval_ll[sl] = heldout._interval_loglik(meas, sim_stats)
+            interval_ll[sl] = heldout._interval_loglik(meas, stats.interval_moments(sim))
             band_mod = None
         else:
             band_mod = heldout.Modulation(modulation.phi, modulation.share[sl])
@@ -113,7 +112,7 @@ def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: boo
                 rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
                 cvar[w][sl] = heldout.count_variance(sim, w, True) * (1.0 + w / T)
             else:
-                count_ll[w][sl] = heldout._count_loglik(meas, sim, sim_stats, band_mask, w, static_ref, band_mod)
+                count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, static_ref, band_mod)
         if acc is not None:
             acc.add(sl, meas, sim, band_mask, static_ref, measures, checks)
         del sim

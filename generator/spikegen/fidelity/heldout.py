@@ -158,13 +158,13 @@ def score(measured: np.ndarray, simulated: np.ndarray, sim_stats: stats.PixelSta
     pixels ``mask [P]``; ``modulation``: the model's (None: none); ``measured_stats``: the
     ``(stats.pixel_stats, stats.interval_pixels)`` of ``measured`` if already computed."""
     if modulation is None:
-        per_pixel = _interval_loglik(measured, sim_stats, measured_stats)
+        held = None if measured_stats is None else (measured_stats[0].isi_values, measured_stats[1])
+        per_pixel = _interval_loglik(measured, (sim_stats.isi_mean, sim_stats.isi_var, sim_stats.n_isi), held)
     else:
         per_pixel = _clock_interval_loglik(measured, simulated, modulation)
     lengths = window_lengths(measured.shape[0])
     for w in lengths:
-        per_pixel = per_pixel + _count_loglik(measured, simulated, sim_stats, mask, w, static_reference,
-                                              modulation) / len(lengths)
+        per_pixel = per_pixel + _count_loglik(measured, simulated, mask, w, static_reference, modulation) / len(lengths)
     return finish_score(per_pixel, mask)
 
 
@@ -174,7 +174,7 @@ def finish_score(per_pixel: np.ndarray, mask: np.ndarray) -> HeldOutScore:
     return HeldOutScore(float(per_pixel[mask].mean()) if mask.any() else 0.0, per_pixel)
 
 
-def _count_loglik(measured, simulated, sim_stats, mask, w: int, static_reference: bool,
+def _count_loglik(measured, simulated, mask, w: int, static_reference: bool,
                   modulation: Modulation | None = None) -> np.ndarray:
     """``[P]`` summed log density of the held-out window counts of length ``w``."""
     Th, T = measured.shape[0], simulated.shape[0]
@@ -202,15 +202,17 @@ def count_loglik_given(c: np.ndarray, pop: np.ndarray, rate: np.ndarray, w: int,
     return (-0.5 * (np.log(2 * np.pi * v) + (c - m) ** 2 / v)).sum(axis=0)
 
 
-def _interval_loglik(measured, sim_stats: stats.PixelStats, measured_stats: tuple | None = None) -> np.ndarray:
+def _interval_loglik(measured, sim_moments: tuple, measured_intervals: tuple | None = None) -> np.ndarray:
     """``[P]`` summed log density of the held-out intervals under a Gaussian of the simulated
-    interval mean and variance (with the mean's sampling error, at least :data:`VAR_FLOOR`)."""
-    P = sim_stats.n.size
-    ps, pix = measured_stats or (stats.pixel_stats(measured), stats.interval_pixels(measured))
-    n = np.maximum(sim_stats.n_isi, 1)
-    mu = np.where(np.isfinite(sim_stats.isi_mean), sim_stats.isi_mean, measured.shape[0] + 1.0)
-    var = np.maximum(np.nan_to_num(sim_stats.isi_var, nan=0.0) * (1.0 + 1.0 / n), VAR_FLOOR)
-    x = ps.isi_values
+    interval mean and variance (``sim_moments``: ``(isi_mean, isi_var, n_isi)`` of stats.pixel_stats,
+    or stats.interval_moments), the variance with the mean's sampling error and at least
+    :data:`VAR_FLOOR`. ``measured_intervals``: stats.intervals of ``measured`` if already computed."""
+    isi_mean, isi_var, n_isi = sim_moments
+    P = isi_mean.size
+    x, pix = measured_intervals or stats.intervals(measured)
+    n = np.maximum(n_isi, 1)
+    mu = np.where(np.isfinite(isi_mean), isi_mean, measured.shape[0] + 1.0)
+    var = np.maximum(np.nan_to_num(isi_var, nan=0.0) * (1.0 + 1.0 / n), VAR_FLOOR)
     ll = -0.5 * (np.log(2 * np.pi * var[pix]) + (x - mu[pix]) ** 2 / var[pix])
     return np.bincount(pix, weights=ll, minlength=P)
 

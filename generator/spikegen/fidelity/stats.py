@@ -111,6 +111,21 @@ def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None) -> PixelSta
                       diff_var)
 
 
+def intervals(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(isi_values, interval pixels)`` of :func:`pixel_stats` and :func:`interval_pixels` alone."""
+    pix, t = spike_times(spikes)
+    same = pix[1:] == pix[:-1]
+    return (t[1:] - t[:-1])[same].astype(np.float64), pix[1:][same]
+
+
+def interval_moments(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(isi_mean, isi_var, n_isi)`` of :func:`pixel_stats` alone (the same numbers, cheaper)."""
+    P = int(np.prod(spikes.shape[1:]))
+    pix, t = spike_times(spikes)
+    same = pix[1:] == pix[:-1]
+    return grouped_var((t[1:] - t[:-1])[same].astype(np.float64), pix[1:][same], P, 3)
+
+
 def _isi_extremes(isi, isi_pix, P):
     """Shortest and longest interval of each pixel, ``[P]`` each (0 where it has none)."""
     isi_min = np.zeros(P)
