@@ -105,16 +105,17 @@ def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: boo
         else:
             band_mod = heldout.Modulation(modulation.phi, modulation.share[sl])
             interval_ll[sl] = heldout._clock_interval_loglik(meas, sim, band_mod)
+        if pooled:
+            rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
         for w in lengths:
             if pooled:
                 s = heldout.window_counts(sim[T - Th:], w)
                 pop[w] = pop[w] + s[:, band_mask].sum(axis=1)
-                rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
                 cvar[w][sl] = heldout.count_variance(sim, w, True) * (1.0 + w / T)
             else:
                 count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, static_ref, band_mod)
         if acc is not None:
-            acc.add(sl, meas, sim, band_mask, static_ref, measures, checks)
+            acc.add(sl, meas, sim, band_mask, static_ref, checks)
         del sim
     if pooled:  # heldout._count_loglik's static branch, with the factor of the whole population
         for r0, r1 in bands(H, rows):
@@ -150,7 +151,7 @@ class _Accumulators:
             self.fields[name] = np.zeros(self.P, dtype=np.asarray(values).dtype)
         self.fields[name][sl] = values
 
-    def add(self, sl, meas, sim_full, mask, static_ref, measures, checks):
+    def add(self, sl, meas, sim_full, mask, static_ref, checks):
         Th, T = self.Th, sim_full.shape[0]
         sim = sim_full[T - Th:]
         pm, ps = stats.pixel_stats(meas), stats.pixel_stats(sim)
