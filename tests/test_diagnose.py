@@ -504,7 +504,8 @@ def test_shared_variance_is_in_every_quadrant_or_none():
 
 # ---------------------------------------------------------------------- bands of rows
 BAND_CASES = [(["flicker", "shot_noise"], 4, "ref"), (["gain_nonuniformity", "hot_pixels", "dark_current"], 6, "ref"),
-              (["crosstalk", "reset_to_zero"], 30, "ref"), (["shot_noise", "hot_pixels"], 2, "self")]
+              (["crosstalk", "reset_to_zero"], 30, "ref"), (["shot_noise", "hot_pixels"], 2, "self"),
+              (["flicker", "shot_noise"], 4, "self")]
 
 
 @pytest.mark.parametrize("names,seed,reference", BAND_CASES)
@@ -551,6 +552,12 @@ def test_band_statistics_are_those_of_the_whole_stream():
                                   stats.population_signal(spikes[:480], mask))
     quads = bands.fit_window_pass(ctx, sensor, 8, mask=mask)["quadrants"]
     assert stats.shared_variance_of(quads) == stats.shared_variance(sim, mask)
+    # the motion test, on the flicker's population clock
+    from spikegen.fidelity import heldout
+
+    assert heldout.shared_clock(spikes, heldout.segment_counts_ok(spikes))[0] is not None
+    for banded, whole in zip(bands.motion_test(ctx.spikes, 8), heldout.motion_test(spikes)):
+        np.testing.assert_array_equal(banded, whole)
 
 
 @pytest.mark.parametrize("effects", [{"shot_noise": {"electrons": 300.0}}, {"crosstalk": {"fraction": 0.1}}])

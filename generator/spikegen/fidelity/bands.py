@@ -280,3 +280,25 @@ def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | 
     if mask is not None:
         out["quadrants"], out["signal"] = quads, np.asarray(signal).astype(np.float64)
     return out
+
+
+def motion_test(stream: Stream, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """heldout.motion_test of ``stream``, band by band: the shared clock from the population
+    counts and the rates of all bands, then each pixel's tests in its band (the same numbers)."""
+    H = stream.shape[1]
+    spans = bands(H, rows)
+    counts_ok = np.concatenate([heldout.segment_counts_ok(stream.rows(r0, r1)) for r0, r1 in spans])
+    T, W = stream.shape[0], stream.shape[2]
+    clock, clock_var = None, 0.0
+    if T // stats.COMMON_WINDOW >= 4 and min(int(q[-1].sum()) for q in stats._quadrants(counts_ok, H, W)) >= 4:
+        shared, se = stats.shared_variance_of(quadrant_counts(stream, counts_ok, rows, T))
+        if counts_ok.any() and shared >= 5.0 * se and shared >= 0.01 ** 2:
+            lam = np.concatenate([stream.rows(r0, r1).reshape(T, -1)[:, counts_ok[r0 * W: r1 * W]]
+                                  .mean(axis=0, dtype=np.float64) for r0, r1 in spans])
+            clock = stats.clock_of(population_signal(stream, counts_ok, rows))
+            clock_var = heldout.clock_variance(lam)
+    tests = {}
+    for k in heldout.MOTION_SEGMENTS:
+        parts = [heldout.dispersion_on_clock(stream.rows(r0, r1), k, clock, clock_var) for r0, r1 in spans]
+        tests[k] = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    return heldout.motion_verdict(counts_ok, tests)

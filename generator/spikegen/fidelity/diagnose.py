@@ -218,8 +218,7 @@ def _context(spikes: bands.Stream, radiance, intensity: float, baseline: Sensor,
         if X.ndim != 3 or X.shape[1:] != (H, W):
             raise InputError(f"reference radiance is {X.shape[-1]}x{X.shape[-2]}, the stream is {W}x{H}")
     Rb, db = baseline.maps(H, W)
-    # the motion test reads the whole stream at once (not yet in bands)
-    static, tested = heldout.motion_test(spikes.dense()) if self_ref else (np.ones(H * W, dtype=bool),) * 2
+    static, tested = bands.motion_test(spikes, rows) if self_ref else (np.ones(H * W, dtype=bool),) * 2
     return Context(spikes, X, intensity, baseline, Tf, meas, halves, self_ref, Rb.reshape(-1), db.reshape(-1),
                    constant_interval_fraction(meas), static, int((~tested).sum()), rows)
 

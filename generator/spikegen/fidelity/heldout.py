@@ -266,16 +266,31 @@ def motion_test(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     A modulation shared by all pixels (stats.shared_variance, as flicker) moves no pixel: when
     one is found the intervals are measured on the population's clock (stats.population_clock)."""
+    counts_ok = segment_counts_ok(spikes)
+    clock = shared_clock(spikes, counts_ok)
+    return motion_verdict(counts_ok, {k: dispersion_on_clock(spikes, k, *clock) for k in MOTION_SEGMENTS})
+
+
+MOTION_SEGMENTS = (8, 4, 2)  # the segment counts of motion_test's interval tests, in order
+
+
+def segment_counts_ok(spikes: np.ndarray) -> np.ndarray:
+    """``[P]`` test 1 of :func:`motion_test`: the dispersion of the counts in 8 segments."""
     seg = spikes.shape[0] // 8
     c = window_counts(spikes, seg)[:8]
     mean = c.mean(axis=0)
     dispersion = ((c - mean) ** 2).sum(axis=0) / (mean + 1.0)
-    counts_ok = dispersion <= STATIC_DISPERSION
+    return dispersion <= STATIC_DISPERSION
+
+
+def motion_verdict(counts_ok: np.ndarray, tests: dict) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`motion_test` from test 1 and the :func:`interval_dispersion` of each of
+    :data:`MOTION_SEGMENTS` (``{segments: dict}``)."""
     P = counts_ok.size
     tested = np.zeros(P, dtype=bool)
     moving = np.zeros(P, dtype=bool)
-    for segments in (8, 4, 2):
-        test = interval_dispersion(spikes, counts_ok, segments)
+    for segments in MOTION_SEGMENTS:
+        test = tests[segments]
         now = ~tested & (test["dof"] > 0)
         tested |= now
         moving |= now & test["moving"]
@@ -326,20 +341,32 @@ def interval_dispersion(spikes: np.ndarray, mask: np.ndarray, segments: int = 8)
     boundary, and whether any of the three passes its ``1 - STATIC_P`` quantile (the step's
     with Bonferroni's correction over the ``segments - 1`` boundaries); the sample variance of
     ``d`` (NaN below 3) and its count, and the rate (1 / mean interval, 0 below 3 intervals)."""
+    return dispersion_on_clock(spikes, segments, *shared_clock(spikes, mask))
+
+
+def shared_clock(spikes: np.ndarray, mask: np.ndarray) -> tuple:
+    """``(clock [T] or None, its counting variance per frame)`` of :func:`interval_dispersion`: the
+    population clock of the pixels of ``mask [P]`` where they share a modulation, else None, 0."""
+    shared, se = stats.shared_variance(spikes, mask)
+    if not (mask.any() and shared >= 5.0 * se and shared >= 0.01 ** 2):
+        return None, 0.0
     T = spikes.shape[0]
+    lam = spikes.reshape(T, -1)[:, mask].mean(axis=0, dtype=np.float64)
+    return stats.population_clock(spikes, mask), clock_variance(lam)
+
+
+def clock_variance(lam: np.ndarray) -> float:
+    """The population clock's counting variance per frame from the rates ``lam`` of its pixels."""
+    return float((lam * (1.0 - lam)).sum() / max(lam.sum(), 1e-12) ** 2)
+
+
+def dispersion_on_clock(spikes: np.ndarray, segments: int, clock: np.ndarray | None, clock_var: float) -> dict:
+    """:func:`interval_dispersion` given :func:`shared_clock` (each pixel's numbers are its own)."""
     P = int(np.prod(spikes.shape[1:]))
     k = int(segments)
-    seg = T // k
+    seg = spikes.shape[0] // k
     pix, t = stats.spike_times(spikes)
-    shared, se = stats.shared_variance(spikes, mask)
-    clock_var = 0.0
-    if mask.any() and shared >= 5.0 * se and shared >= 0.01 ** 2:
-        clock = stats.population_clock(spikes, mask)
-        lam = spikes.reshape(T, -1)[:, mask].mean(axis=0, dtype=np.float64)
-        clock_var = float((lam * (1.0 - lam)).sum() / max(lam.sum(), 1e-12) ** 2)  # per frame
-        tt = clock[t]
-    else:
-        tt = t.astype(np.float64)
+    tt = t.astype(np.float64) if clock is None else clock[t]
     same = pix[1:] == pix[:-1]
     same2 = same[1:] & same[:-1]
     dd = (tt[2:] - 2 * tt[1:-1] + tt[:-2])[same2]
