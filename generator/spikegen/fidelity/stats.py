@@ -52,9 +52,16 @@ class PixelStats:
 def spike_times(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(pixel, frame)`` of every spike, sorted by pixel then frame (``int64 [N]`` each)."""
     T = spikes.shape[0]
-    flat = np.ascontiguousarray(spikes.reshape(T, -1).T)  # [P, T]
-    pix, t = np.nonzero(flat)
-    return pix.astype(np.int64), t.astype(np.int64)
+    frames = spikes.reshape(T, -1)
+    flat = np.empty(frames.shape[::-1], dtype=frames.dtype)  # [P, T]
+    for t0 in range(0, T, TRANSPOSE_FRAMES):  # in blocks of frames: a byte array's plain transpose is 4x slower
+        flat[:, t0: t0 + TRANSPOSE_FRAMES] = frames[t0: t0 + TRANSPOSE_FRAMES].T
+    idx = np.flatnonzero(flat).astype(np.int64, copy=False)
+    pix = idx // max(T, 1)
+    return pix, idx - pix * T
+
+
+TRANSPOSE_FRAMES = 256
 
 
 def grouped_var(values, groups, P, min_count):
