@@ -70,9 +70,27 @@ def bands(height: int, rows: int):
 
 
 def simulate_rows(ctx: Context, sensor: Sensor, r0: int, r1: int) -> np.ndarray:
-    """``[T, r1 - r0, W]``: rows ``r0:r1`` of effects.model_simulation (the same draws)."""
+    """``[T, r1 - r0, W]``: rows ``r0:r1`` of ``sensor``'s stream of the diagnosis' reference
+    radiance over the whole recording (seed SIM_SEED, so every model is compared on the same draws)."""
     return simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED, threads=SIM_THREADS,
                     rows=(r0, r1))
+
+
+SIM_BYTES = 1 << 28  # bytes of a block of simulated rows [T, rows, W] (256 MiB; its noise draws take twice that)
+
+
+def simulated_bands(ctx: Context, sensor: Sensor, rows: int):
+    """``(r0, r1, rows r0:r1 of the simulation)`` for each band of ``rows`` rows: simulated a
+    block of several bands at a time (up to SIM_BYTES), since the simulator steps through the
+    frames in Python and a block of few pixels would spend its time there."""
+    T, (H, W) = ctx.frames, ctx.shape
+    block = max(rows, (SIM_BYTES // max(T * W, 1)) // rows * rows)
+    for b0 in range(0, H, block):
+        b1 = min(H, b0 + block)
+        sim = simulate_rows(ctx, sensor, b0, b1)
+        for r0, r1 in bands(b1 - b0, rows):
+            yield b0 + r0, b0 + r1, sim[:, r0:r1]
+        del sim
 
 
 def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: bool = False) -> dict:
@@ -94,9 +112,8 @@ def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: boo
     rate, cvar = np.zeros(P), {w: np.zeros(P) for w in lengths}
     pop = {w: 0.0 for w in lengths}
     acc = _Accumulators(P, Th) if (measures or checks) else None
-    for r0, r1 in bands(H, rows):
+    for r0, r1, sim in simulated_bands(ctx, sensor, rows):
         sl = slice(r0 * W, r1 * W)
-        sim = simulate_rows(ctx, sensor, r0, r1)
         meas = ctx.spikes.rows(r0, r1, Tf)
         band_mask = mask[sl]
         if modulation is None:
@@ -116,7 +133,6 @@ def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: boo
                 count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, static_ref, band_mod)
         if acc is not None:
             acc.add(sl, meas, sim, band_mask, static_ref, checks)
-        del sim
     if pooled:  # heldout._count_loglik's static branch, with the factor of the whole population
         for r0, r1 in bands(H, rows):
             sl = slice(r0 * W, r1 * W)
@@ -263,13 +279,13 @@ def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | 
     clock = None
     if clock_mask is not None:
         signal = 0
-        for r0, r1 in bands(H, rows):
-            band = simulate_rows(ctx, sensor, r0, r1)[:Tf]
+        for r0, r1, band in simulated_bands(ctx, sensor, rows):
+            band = band[:Tf]
             signal = signal + band.reshape(Tf, -1)[:, clock_mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
         clock = stats.clock_of(np.asarray(signal).astype(np.float64))
     parts, quads, signal = [], 0, 0
-    for r0, r1 in bands(H, rows):
-        band = simulate_rows(ctx, sensor, r0, r1)[:Tf]
+    for r0, r1, band in simulated_bands(ctx, sensor, rows):
+        band = band[:Tf]
         p = stats.pixel_stats(band, clock)
         p.isi_values = None
         parts.append(p)
