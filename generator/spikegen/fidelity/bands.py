@@ -1,17 +1,18 @@
-"""A model's simulation of the recording, scored a band of rows at a time (``spikegen diagnose``).
+"""``spikegen diagnose`` a band of rows at a time: the measured stream and its models' simulations.
 
-A model's simulation of the whole recording is ``T x H x W`` bytes (2 GB for one second, 20000
-frames, of a 250 x 400 camera), and the timing statistics of all its spikes take several times
-that. The held-out score (:mod:`.heldout`), the discrepancy measures (stats.discrepancies) and
-the unexplained checks (:mod:`.unexplained`) need of it per-pixel statistics and sums over
-pixels of counts per frame or window only. So the simulation is made and reduced one band of
-rows at a time: the simulator draws each block of sensor.CHUNK_ROWS rows from its own random
-stream (sensor.simulate, ``rows``), so a band simulated alone holds the same spikes as those rows
-of the whole simulation; each pixel's statistics are computed by the same functions from its own
-spikes; sums over pixels (population counts) are of whole numbers, exact in any order. What needs
-every pixel (the held-out windows' population factor, row, column and mask means) is done after
-the pass, on the per-pixel arrays. tests/test_diagnose.py checks that a diagnosis in bands of
-8 rows gives the same JSON as one in a single band.
+A stream of the whole recording is ``T x H x W`` bytes (2 GB for one second, 20000 frames, of a
+250 x 400 camera), and the timing statistics of all its spikes take several times that. What the
+diagnosis takes of a stream is per-pixel statistics (counts, intervals, windows) and sums over
+pixels of counts per frame or window (population signals, quadrant counts). So the measured
+stream is kept packed (:class:`Stream`, 8 pixels a byte) and unpacked a band of rows at a time,
+and each model's simulation is made a block of bands at a time (:func:`simulated_bands`) and
+reduced band by band. The simulator draws each block of sensor.CHUNK_ROWS rows from its own
+random stream (sensor.simulate, ``rows``), so rows simulated alone are the same as those rows of
+the whole simulation; each pixel's statistics are computed by the same functions from its own
+spikes; sums over pixels are of whole numbers, exact in any order. What needs every pixel (the
+held-out windows' population factor, row, column and mask means, the shared clock) is done
+after a pass, on the per-pixel arrays. tests/test_diagnose.py checks that a diagnosis in bands
+of 8 rows gives the same JSON, bit for bit, as one in a single band.
 """
 from __future__ import annotations
 
