@@ -44,8 +44,9 @@ tested for a change of rate that show none; "untested_pixels" had too few spikes
 The steps are separate modules, each returning frozen records (:mod:`.records`):
 :mod:`.ratefit` (flicker, the rate model), :mod:`.structure` (per-pixel structure),
 :mod:`.effects` (verdicts and the extended sensor); :func:`diagnose` calls them in order.
-Streams are read, and models simulated and scored, a band of rows at a time (:mod:`.bands`), so
-that no stream of the whole recording is held unpacked.
+Streams are read, and models simulated and scored, a band of rows at a time (:mod:`.bands`): the
+diagnosis of a packed stream (bands.Stream, as the CLI reads an ``.npz``) holds no stream of the
+whole recording unpacked (the ``--report`` plots still unpack it).
 """
 from __future__ import annotations
 
