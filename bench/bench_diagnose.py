@@ -9,8 +9,8 @@ The recording is simulated (seeded) with gain nonuniformity, dark current and sh
 (spikegen.fidelity.synth; N_e = 300 for `small`; 2000 for `second`, where no pixel gets fewer
 than 30 photo-electrons a frame, so the simulator never takes its slow exact-Poisson path over
 the 2 * 10^9 pixel-frames) and written as .npz with its reference radiance as .npy.
-`spikegen diagnose` then runs in a child process, so that its peak RSS (`RUSAGE_CHILDREN`) is
-its own; the child is stopped when its resident memory passes --limit-mib (default: the
+`spikegen diagnose` then runs in a child process, which reports its own peak RSS (VmHWM,
+read in the child as it ends; polled from /proc when the bench stops it); the child is stopped when its resident memory passes --limit-mib (default: the
 target's 4096 for `second`, none otherwise) or when it runs past --timeout seconds, and the
 bench says so. Prints the wall time of the diagnosis, its CPU time (user + system, all its
 threads), its peak RSS, the time of the one simulation that made the recording (a yardstick
@@ -56,10 +56,11 @@ def make_recording(height: int, width: int, frames: int, electrons: float, folde
     return sim_s
 
 
-def _rss_mib(pid: int) -> float:
+def _status_mib(pid: int, key: str = "VmRSS") -> float:
+    """``key`` (VmRSS: resident now; VmHWM: its peak) of process ``pid`` from /proc, MiB (0 if gone)."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
-            if line.startswith("VmRSS:"):
+            if line.startswith(key + ":"):
                 return int(line.split()[1]) / 1024.0
     except OSError:
         pass
@@ -68,18 +69,28 @@ def _rss_mib(pid: int) -> float:
 
 def run_diagnose(folder: Path, limit_mib: float | None, timeout: float) -> tuple[str, float, float, float]:
     """``(outcome, wall seconds, peak RSS MiB, CPU seconds)`` of `spikegen diagnose` in a child process."""
-    code = ("import sys; from spikegen.cli import main; sys.exit(main(sys.argv[1:]))")
-    args = [sys.executable, "-c", code, "diagnose", str(folder / "m.npz"), "--reference", str(folder / "ref.npy"),
+    # the child writes its own peak RSS (VmHWM) when it ends: RUSAGE_CHILDREN's ru_maxrss would
+    # count this process's peak (it holds the simulated recording), since Python starts the child
+    # with vfork and Linux carries the parent's high-water mark over into the child's exec
+    hwm = folder / "hwm.txt"
+    code = ("import sys; from spikegen.cli import main\n"
+            "try:\n    rc = main(sys.argv[2:])\n"
+            "finally:\n"
+            "    hwm = [l for l in open('/proc/self/status') if l.startswith('VmHWM:')][0].split()[1]\n"
+            "    open(sys.argv[1], 'w').write(hwm)\n"
+            "sys.exit(rc)")
+    args = [sys.executable, "-c", code, str(hwm), "diagnose", str(folder / "m.npz"), "--reference", str(folder / "ref.npy"),
             "--intensity", "96", "--json", str(folder / "d.json")]
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(REPO / "generator"), os.environ.get("PYTHONPATH", "")])}
     t0 = time.perf_counter()
     err_path = folder / "stderr.txt"
     with open(err_path, "w") as err_file:
         child = subprocess.Popen(args, env=env, stdout=subprocess.DEVNULL, stderr=err_file)
-    outcome = None
+    outcome, polled = None, 0.0
     while child.poll() is None:
         wall = time.perf_counter() - t0
-        if limit_mib is not None and _rss_mib(child.pid) > limit_mib:
+        polled = max(polled, _status_mib(child.pid, "VmHWM"))
+        if limit_mib is not None and _status_mib(child.pid) > limit_mib:
             outcome = f"stopped: resident memory passed {limit_mib:.0f} MiB after {wall:.0f} s"
         elif wall > timeout:
             outcome = f"stopped: still running after {timeout:.0f} s"
@@ -91,7 +102,8 @@ def run_diagnose(folder: Path, limit_mib: float | None, timeout: float) -> tuple
     wall = time.perf_counter() - t0
     err = err_path.read_text(errors="replace")
     usage = resource.getrusage(resource.RUSAGE_CHILDREN)
-    peak, cpu = usage.ru_maxrss / 1024.0, usage.ru_utime + usage.ru_stime
+    cpu = usage.ru_utime + usage.ru_stime
+    peak = int(hwm.read_text()) / 1024.0 if hwm.exists() else polled  # polled: a child that was stopped
     if outcome is None:
         outcome = "ok" if child.returncode == 0 else f"exit {child.returncode}: {(err.strip().splitlines() or [''])[-1]}"
     else:  # the diagnosis' progress bar (stderr) says which step it had reached

@@ -500,3 +500,90 @@ def test_shared_variance_is_in_every_quadrant_or_none():
         v, se = shared_variance(spikes, mask)
         results[name] = v / se
     assert abs(results["none"]) < 5 and results["all"] > 5 and results["one quadrant"] < 5, results
+
+
+# ---------------------------------------------------------------------- bands of rows
+BAND_CASES = [(["flicker", "shot_noise"], 4, "ref"), (["gain_nonuniformity", "hot_pixels", "dark_current"], 6, "ref"),
+              (["crosstalk", "reset_to_zero"], 30, "ref"), (["shot_noise", "hot_pixels"], 2, "self"),
+              (["flicker", "shot_noise"], 4, "self")]
+
+
+@pytest.mark.parametrize("names,seed,reference", BAND_CASES)
+def test_diagnosis_in_bands_of_8_rows_is_the_diagnosis_in_one_band(names, seed, reference, monkeypatch):
+    """The measured stream read, and every model simulated and scored, in bands of 8 rows (the
+    simulator's noise blocks; bands.py) gives the same JSON, to the last bit, as in one band of
+    all 64 rows: from the dense stream with the models simulated whole, and from the packed
+    stream with them simulated a band at a time."""
+    from spikegen.fidelity import bands
+
+    spikes, radiance, intensity, _ = synth.hidden_case(names, seed, frames=600)
+    radiance = "self" if reference == "self" else radiance
+    whole = json.dumps(diagnose(spikes, radiance, intensity, band_rows=64).as_json(), sort_keys=True)
+    assert json.dumps(diagnose(spikes, radiance, intensity, band_rows=8).as_json(), sort_keys=True) == whole
+    monkeypatch.setattr(bands, "SIM_BYTES", 1)  # blocks of one band
+    packed = bands.Stream(spikes.shape, packed=np.packbits(spikes, axis=-1, bitorder="little"))
+    assert json.dumps(diagnose(packed, radiance, intensity, band_rows=8).as_json(), sort_keys=True) == whole
+
+
+def test_band_statistics_are_those_of_the_whole_stream():
+    """bands.pixel_stats and bands.fit_window_pass (on the population clock too), band by band,
+    against stats.pixel_stats of the whole stream and of the model's whole simulation."""
+    from dataclasses import fields
+
+    from spikegen.fidelity import bands, stats
+    from spikegen.fidelity.diagnose import _context
+    from spikegen.fidelity.records import SIM_SEED
+    from spikegen.sensor import Sensor, simulate
+
+    spikes, radiance, intensity, _ = synth.hidden_case(["flicker", "shot_noise"], 4, frames=600)
+    T, H, W = spikes.shape
+    ctx = _context(bands.Stream.of(spikes), radiance, intensity, Sensor(name="ideal").sized(H, W), 480, 8)
+    mask = ctx.meas.rate < 0.9
+    sensor = Sensor(name="shot", electrons=300.0).sized(H, W)
+    sim = simulate(ctx.X, intensity, sensor, frames=T, seed=SIM_SEED)[:480]
+    clock = stats.population_clock(spikes[:480], mask)
+    pairs = [(bands.pixel_stats(ctx.spikes, 8, 0, 480, clock), stats.pixel_stats(spikes[:480], clock)),
+             (bands.fit_window_pass(ctx, sensor, 8)["stats"], stats.pixel_stats(sim)),
+             (bands.fit_window_pass(ctx, sensor, 8, clock_mask=mask)["stats"],
+              stats.pixel_stats(sim, stats.population_clock(sim, mask)))]
+    for banded, whole in pairs:
+        for f in fields(stats.PixelStats):
+            if f.name != "isi_values":  # not kept in bands (as many as the spikes)
+                np.testing.assert_array_equal(getattr(banded, f.name), getattr(whole, f.name), err_msg=f.name)
+    np.testing.assert_array_equal(bands.population_signal(ctx.spikes, mask, 8, 0, 480),
+                                  stats.population_signal(spikes[:480], mask))
+    quads = bands.fit_window_pass(ctx, sensor, 8, mask=mask)["quadrants"]
+    assert stats.shared_variance_of(quads) == stats.shared_variance(sim, mask)
+    # the motion test, on the flicker's population clock
+    from spikegen.fidelity import heldout
+
+    assert heldout.shared_clock(spikes, heldout.segment_counts_ok(spikes))[0] is not None
+    for banded, whole in zip(bands.motion_test(ctx.spikes, 8), heldout.motion_test(spikes)):
+        np.testing.assert_array_equal(banded, whole)
+
+
+@pytest.mark.parametrize("effects", [{"shot_noise": {"electrons": 300.0}}, {"crosstalk": {"fraction": 0.1}}])
+def test_simulated_rows_are_those_rows_of_the_whole_simulation(effects):
+    from spikegen.sensor import simulate
+
+    rng = np.random.default_rng(1)
+    x = synth.test_radiance(20, 24, rng)
+    sensor = synth.make_sensor(effects, 20, 24, rng)
+    whole = simulate(x, 96.0, sensor, frames=200, seed=5)
+    for r0, r1 in ((0, 8), (8, 16), (16, 20), (8, 20)):
+        np.testing.assert_array_equal(simulate(x, 96.0, sensor, frames=200, seed=5, rows=(r0, r1)), whole[:, r0:r1])
+
+
+def test_packed_reading_is_the_unpacked_stream(tmp_path):
+    from spikegen.fidelity.bands import Stream
+    from spikegen.spikeio import read_spikes, read_spikes_packed
+
+    spikes = (np.random.default_rng(3).random((30, 12, 16)) < 0.3).astype(np.uint8)
+    for name in ("m.npz", "m.dat"):
+        write_spikes(tmp_path / name, spikes)
+        packed, shape = read_spikes_packed(tmp_path / name, (16, 12))
+        stream = Stream(shape, packed=packed)
+        np.testing.assert_array_equal(stream.dense(), read_spikes(tmp_path / name, (16, 12)))
+        np.testing.assert_array_equal(stream.rows(4, 9, 3, 20), spikes[3:20, 4:9])
+    write_spikes(tmp_path / "odd.dat", spikes[:, :, :12])  # 12 x 12: rows are not whole bytes
+    assert read_spikes_packed(tmp_path / "odd.dat", (12, 12)) is None

@@ -321,7 +321,8 @@ def start_phase(seed, height: int, width: int) -> np.ndarray:
 
 
 def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: int = 256, seed=0,
-             phase: np.ndarray | None = None, progress=None, threads: int = 1) -> np.ndarray:
+             phase: np.ndarray | None = None, progress=None, threads: int = 1,
+             rows: tuple[int, int] | None = None) -> np.ndarray:
     """Spike stream of one view.
 
     radiance: linear luminance, ``[K, H, W]`` sub-frames or ``[H, W]`` (static, K = 1).
@@ -331,7 +332,10 @@ def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: i
     phase: optional start charge ``uint32 [H, W]`` (overrides the seeded one).
     progress: optional callable(rows_done, rows_total).
     threads: row blocks integrated in parallel threads (the result does not depend on it).
-    Returns ``uint8 [T, H, W]`` of 0/1.
+    rows: ``(r0, r1)``, only those rows (``r0`` a multiple of CHUNK_ROWS, ``r1`` one or ``H``):
+    each block of CHUNK_ROWS rows draws its noise from its own stream, so they are the same
+    rows as in the whole stream.
+    Returns ``uint8 [T, H, W]`` of 0/1 (``[T, r1 - r0, W]`` with ``rows``).
     """
     x = _checked_radiance(radiance, intensity, frames)
     K, H, W = x.shape
@@ -341,20 +345,23 @@ def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: i
     phase = start_phase(ss, H, W) if phase is None else np.asarray(phase, dtype=np.uint32)
     if phase.shape != (H, W):
         raise InputError(f"phase must be [{H}, {W}], got {phase.shape}")
-    out = np.empty((frames, H, W), dtype=np.uint8)
+    top, bottom = (0, H) if rows is None else (int(rows[0]), int(rows[1]))
+    if not (0 <= top < bottom <= H and top % CHUNK_ROWS == 0 and (bottom % CHUNK_ROWS == 0 or bottom == H)):
+        raise InputError(f"rows must be (r0, r1) within 0..{H}, at multiples of {CHUNK_ROWS}, got {rows}")
+    out = np.empty((frames, bottom - top, W), dtype=np.uint8)
     fast = sensor.kind == "if" and not sensor.radiance_effects and sensor.simple_readout
     step = _rows_per_chunk(H, W, fast, max(1, int(threads)))
     run = _fast_rows if fast else _dense_rows
 
     def chunk(r0):
-        r1 = min(H, r0 + step)
+        r1 = min(bottom, r0 + step)
         rngs = [np.random.Generator(np.random.PCG64(_child(ss, 1 + b)))
                 for b in range(r0 // CHUNK_ROWS, (r1 + CHUNK_ROWS - 1) // CHUNK_ROWS)]
         run(x, r0, r1, float(intensity), sensor, resp, dark, phase, frames, rngs,
-            out.reshape(frames, H * W)[:, r0 * W: r1 * W])
+            out.reshape(frames, -1)[:, (r0 - top) * W: (r1 - top) * W])
         return r1
 
-    _run_chunks(chunk, range(0, H, step), max(1, int(threads)), progress, H)
+    _run_chunks(chunk, range(top, bottom, step), max(1, int(threads)), progress, H)
     return out
 
 

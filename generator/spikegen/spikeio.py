@@ -214,6 +214,51 @@ def read_spikes(path, size: tuple[int, int] | None = None, frames: int | None = 
     return out
 
 
+def read_spikes_packed(path, size: tuple[int, int] | None = None):
+    """``(packed, (T, H, W))``: the stream of a spike file with 8 pixels of a row a byte
+    (``np.packbits(spikes, axis=-1, bitorder="little")``, an eighth of its unpacked size), read
+    without unpacking it, for our ``.npz`` and a ``.dat`` whose width is a multiple of 8; None for
+    other files (:func:`read_spikes` reads them). The same checks as :func:`read_spikes`."""
+    path = Path(path)
+    if not path.is_file():
+        raise InputError(f"{path}: no such file")
+    ext = path.suffix.lower()
+    if ext == ".dat":
+        W, H = _dat_size(path, size)
+        if W % 8:
+            return None
+        try:
+            data = path.read_bytes()
+        except OSError as exc:
+            raise InputError(f"{path}: cannot read: {exc.strerror or exc}") from None
+        frame_bytes = H * W // 8
+        if len(data) == 0 or len(data) % frame_bytes:
+            raise InputError(
+                f"{path}: {len(data)} bytes is not a whole number of {W}x{H} frames "
+                f"({frame_bytes} bytes each): truncated file or wrong --size"
+            )
+        T = len(data) // frame_bytes
+        rows = np.frombuffer(data, dtype=np.uint8).reshape(T, H, W // 8)
+        return rows[:, ::-1, :], (T, H, W)  # upright, as decode_dat
+    if ext != ".npz":
+        return None
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            if not ("spikes" in z.files and "shape" in z.files):
+                return None
+            shape = tuple(int(v) for v in z["shape"])
+            packed = z["spikes"]
+    except (OSError, ValueError, EOFError, KeyError, zipfile.BadZipFile) as exc:
+        raise InputError(f"{path}: not a readable .npz spike file ({exc})") from None
+    if len(shape) != 3:
+        raise InputError(f"{path}: 'shape' must have 3 entries (T, H, W), got {shape}")
+    if packed.dtype != np.uint8 or packed.shape != (shape[0], shape[1], (shape[2] + 7) // 8):
+        raise InputError(f"{path}: packed 'spikes' do not match shape {shape}")
+    if size is not None and (shape[2], shape[1]) != tuple(size):
+        raise InputError(f"{path}: stream is {shape[2]}x{shape[1]}, --size says {size[0]}x{size[1]}")
+    return packed, shape
+
+
 def _dat_size(path: Path, size: tuple[int, int] | None) -> tuple[int, int]:
     """The (W, H) to read a ``.dat`` at: ``size``, checked against a ``config.yaml`` beside it."""
     from .formats import read_spikecv_size

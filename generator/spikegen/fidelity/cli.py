@@ -10,7 +10,7 @@ import click
 import numpy as np
 
 from ..errors import InputError
-from ..spikeio import parse_size, read_radiance, read_spikes, write_json_atomic
+from ..spikeio import parse_size, read_radiance, read_spikes, read_spikes_packed, write_json_atomic
 
 
 def _size(value):
@@ -78,9 +78,11 @@ def diagnose(measured, ref, size, intensity, baseline, json_path, report_dir, sa
     from tqdm import tqdm
 
     from ..presets import get_sensor
+    from .bands import Stream
     from .diagnose import diagnose as run
 
-    spikes = read_spikes(measured, _size(size))
+    packed = read_spikes_packed(measured, _size(size))  # kept packed: an eighth of the memory
+    spikes = Stream(packed[1], packed=packed[0]) if packed else Stream.of(read_spikes(measured, _size(size)))
     T, H, W = spikes.shape
     radiance = _reference(ref, H, W)
     if intensity is None:
@@ -108,7 +110,7 @@ def diagnose(measured, ref, size, intensity, baseline, json_path, report_dir, sa
     if report_dir is not None:
         from .report import write_report
 
-        write_report(result, spikes, radiance, report_dir)
+        write_report(result, spikes.dense(), radiance, report_dir)
     _print_summary(result)
 
 
@@ -122,14 +124,17 @@ def _reference(ref: str, H: int, W: int):
 
 
 def estimate_intensity(spikes, radiance) -> float:
-    """``I`` such that the median unsaturated pixel fires at ``(I / 256) X``; 256 for ``self``."""
+    """``I`` such that the median unsaturated pixel fires at ``(I / 256) X``; 256 for ``self``.
+    ``spikes``: ``[T, H, W]`` or a bands.Stream."""
     if isinstance(radiance, str):
         return 256.0
-    from .stats import window_rate
+    from . import bands
 
     x = np.asarray(radiance, dtype=np.float64)
     x = x.mean(axis=0) if x.ndim == 3 else x
-    r = window_rate(spikes).reshape(x.shape)
+    stream = bands.Stream.of(spikes)
+    T, H, W = stream.shape
+    r = bands.window_rate(stream, bands.band_rows(T, H, W), 0, T).reshape(x.shape)
     ok = (r > 0) & (r < 0.8) & (x > 0)
     if ok.sum() < 10:
         raise InputError("cannot estimate --intensity: too few unsaturated pixels with light; give --intensity")

@@ -44,6 +44,9 @@ tested for a change of rate that show none; "untested_pixels" had too few spikes
 The steps are separate modules, each returning frozen records (:mod:`.records`):
 :mod:`.ratefit` (flicker, the rate model), :mod:`.structure` (per-pixel structure),
 :mod:`.effects` (verdicts and the extended sensor); :func:`diagnose` calls them in order.
+Streams are read, and models simulated and scored, a band of rows at a time (:mod:`.bands`): the
+diagnosis of a packed stream (bands.Stream, as the CLI reads an ``.npz``) holds no stream of the
+whole recording unpacked (the ``--report`` plots still unpack it).
 """
 from __future__ import annotations
 
@@ -54,13 +57,12 @@ import numpy as np
 
 from ..errors import InputError
 from ..sensor import Sensor
-from . import heldout, stats
-from .effects import gated_effects, model_simulation, sensor_with
+from . import bands, heldout, stats
+from .effects import gated_effects, sensor_with
 from .ratefit import constant_interval_fraction, fit_flicker, fit_rate_model, self_refractory
 from .records import ENVELOPE_SIZE, GATES, SIM_SEED, Context, Effect, Fit, RateFit, as_number  # noqa: F401
 from .structure import pixel_structure
 from .synth import EFFECTS
-from .unexplained import unexplained
 
 __all__ = ["FIT_FRACTION", "SIM_SEED", "GATES", "ENVELOPE_SIZE", "Diagnosis", "Effect", "diagnose", "score_sensor"]
 
@@ -106,21 +108,24 @@ class Diagnosis:
 
 # ---------------------------------------------------------------------- entry point
 def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | None = None,
-             fit_fraction: float = FIT_FRACTION, progress=None) -> Diagnosis:
+             fit_fraction: float = FIT_FRACTION, progress=None, band_rows: int | None = None) -> Diagnosis:
     """Diagnose ``spikes uint8 [T, H, W]`` against ``radiance`` (``[H, W]`` / ``[K, H, W]``
-    linear luminance, or the string ``"self"``) seen at ``intensity``."""
+    linear luminance, or the string ``"self"``) seen at ``intensity``. ``band_rows``: the rows of
+    the bands the models' simulations are made and scored in (bands.band_rows; the result does
+    not depend on it)."""
     spikes = _check_stream(spikes, intensity)
     T, H, W = spikes.shape
     baseline = (baseline or Sensor(name="ideal")).sized(H, W)
     step = progress or (lambda msg: None)
     step("timing statistics")
-    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)))
+    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)),
+                   bands.band_rows(T, H, W, band_rows))
     step("mean-rate model")
     fit = _fit_all(ctx)
     step("effects, chosen by held-out score")
     effects, extended, held = _choose(ctx, fit)
     step("held-out comparison")
-    bm, em = (_held_out(ctx, sim) for sim in held["sims"])  # the baseline's and the extended sensor's
+    bm, em = held["measures"]  # the baseline's and the extended sensor's
     n_static = int(ctx.static.sum())
     info = {"frames": T, "fit_frames": ctx.Tf, "held_out_frames": T - ctx.Tf, "height": H, "width": W,
             "intensity": ctx.intensity, "reference": "self" if ctx.self_ref else f"{ctx.X.shape[0]} sub-frame(s)",
@@ -131,46 +136,47 @@ def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | 
 
 
 def score_sensor(spikes: np.ndarray, radiance, intensity: float, sensor: Sensor, baseline: Sensor | None = None,
-                 fit_fraction: float = FIT_FRACTION) -> heldout.HeldOutScore:
+                 fit_fraction: float = FIT_FRACTION, band_rows: int | None = None) -> heldout.HeldOutScore:
     """The held-out score (the JSON's ``"heldout"`` measure, heldout.score) of a given ``sensor``
     on this recording: the same fit window, reference (``"self"``: from the fit window's rates
     through ``baseline``), static pixels and simulation seed as :func:`diagnose`."""
     spikes = _check_stream(spikes, intensity)
     T, H, W = spikes.shape
     baseline = (baseline or Sensor(name="ideal")).sized(H, W)
-    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)))
-    return _held_score(ctx, sensor.sized(H, W))[0]
+    ctx = _context(spikes, radiance, float(intensity), baseline, int(round(T * fit_fraction)),
+                   bands.band_rows(T, H, W, band_rows))
+    return bands.model_pass(ctx, sensor.sized(H, W))["score"]
 
 
 def _choose(ctx: Context, fit: Fit) -> tuple[list, Sensor, dict]:
     """The gated effects, then backward elimination by held-out score (heldout.select); returns
     the verdicts (dropped effects undetected, with a note), the extended sensor, and
-    ``{"doc": the JSON "heldout" entry, "unexplained": entries, "sims": (the baseline's
-    simulation, the extended sensor's)}``."""
+    ``{"doc": the JSON "heldout" entry, "unexplained": entries, "measures": (the baseline's
+    discrepancy measures, the extended sensor's)}``. Each model's simulation is made and
+    scored in bands of rows (bands.model_pass)."""
     found, electrons = gated_effects(ctx, fit)
     cache = {}
 
     def evaluate(on):
         key = frozenset(on)
         if key not in cache:
-            cache[key] = _held_score(ctx, sensor_with(ctx, fit, found, set(on), electrons))
-        return cache[key][0]
+            cache[key] = bands.model_pass(ctx, sensor_with(ctx, fit, found, set(on), electrons))["score"]
+        return cache[key]
 
     gated = [n for n in EFFECTS if found[n].detected]
     kept, evidence = heldout.select(gated, evaluate, {n: heldout.penalty(n, found[n].parameters) for n in gated})
     effects = [_with_evidence(found[n], n in kept, evidence.get(n)) for n in EFFECTS]
     extended = sensor_with(ctx, fit, found, set(kept), electrons)
-    ideal, ideal_sim = _held_score(ctx, ctx.baseline)
-    fitted = evaluate(set(kept))
-    sim = cache[frozenset(kept)][1]
-    cache.clear()  # the other models' simulations
+    ideal_pass = bands.model_pass(ctx, ctx.baseline, measures=True)
+    fitted_pass = bands.model_pass(ctx, extended, measures=True, checks=True)  # the kept model's again
+    ideal, fitted = ideal_pass["score"], fitted_pass["score"]
     doc = {"measure": heldout.MEASURE, "ideal": as_number(ideal.mean), "fitted": as_number(fitted.mean),
            "higher_is_better": True, "window_frames": heldout.window_lengths(ctx.frames - ctx.Tf),
            "pixels": int(ctx.static.sum()),
            "effects": {n: {"gain_nats": as_number(g), "standard_error": as_number(se), "kept": n in kept}
                        for n, (g, se) in evidence.items()}}
-    found_unexplained = unexplained(ctx.spikes[ctx.Tf:], sim, ctx.static, ctx.X.shape[0] == 1)
-    return effects, extended, {"doc": doc, "unexplained": found_unexplained, "sims": (ideal_sim, sim)}
+    return effects, extended, {"doc": doc, "unexplained": fitted_pass["unexplained"],
+                               "measures": (ideal_pass["measures"], fitted_pass["measures"])}
 
 
 def _with_evidence(effect: Effect, kept: bool, gain) -> Effect:
@@ -186,42 +192,26 @@ def _with_evidence(effect: Effect, kept: bool, gain) -> Effect:
                    note=f"passed its gates but does not improve the held-out score ({nats:+.3g} nats, SE {se:.3g})")
 
 
-def _held_score(ctx: Context, sensor: Sensor):
-    """``(HeldOutScore, simulation [T, H, W])`` of ``sensor``."""
-    sim = model_simulation(ctx, sensor)
-    sim_stats = stats.pixel_stats(sim)
-    held = slice(ctx.Tf, ctx.frames)
-    modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, ctx.frames)
-    return heldout.score(ctx.spikes[held], sim, sim_stats, ctx.static, ctx.X.shape[0] == 1, modulation,
-                         measured_stats=_held_stats(ctx)), sim
-
-
-def _held_stats(ctx: Context) -> tuple:
-    """``(PixelStats, interval pixels)`` of the held-out frames, computed once per diagnosis."""
-    if "held_stats" not in ctx.cache:
-        measured = ctx.spikes[ctx.Tf:]
-        ctx.cache["held_stats"] = (stats.pixel_stats(measured), stats.interval_pixels(measured))
-    return ctx.cache["held_stats"]
-
-
-def _check_stream(spikes, intensity) -> np.ndarray:
-    spikes = np.asarray(spikes)
-    if spikes.ndim != 3:
+def _check_stream(spikes, intensity) -> bands.Stream:
+    """``spikes`` (an array ``[T, H, W]`` or a bands.Stream) as a bands.Stream, checked."""
+    spikes = spikes if isinstance(spikes, bands.Stream) else np.asarray(spikes)
+    if len(spikes.shape) != 3:
         raise InputError(f"measured stream must be [T, H, W], got shape {spikes.shape}")
     T = spikes.shape[0]
     if T < 50:
         raise InputError(f"measured stream has {T} frames; a diagnosis needs at least 50 (1000 recommended)")
     if not (math.isfinite(intensity) and intensity > 0):
         raise InputError(f"intensity must be a positive number, got {intensity}")
-    return spikes
+    return bands.Stream.of(spikes)
 
 
-def _context(spikes, radiance, intensity: float, baseline: Sensor, Tf: int) -> Context:
-    """Timing statistics of the first ``Tf`` frames and the reference radiance ``[K, H, W]``."""
+def _context(spikes: bands.Stream, radiance, intensity: float, baseline: Sensor, Tf: int, rows: int) -> Context:
+    """Timing statistics of the first ``Tf`` frames (read in bands of ``rows`` rows) and the
+    reference radiance ``[K, H, W]``."""
     T, H, W = spikes.shape
-    meas = stats.pixel_stats(spikes[:Tf])
+    meas = bands.pixel_stats(spikes, rows, 0, Tf)
     half = Tf // 2
-    halves = (stats.window_rate(spikes[:half]), stats.window_rate(spikes[half:Tf]))
+    halves = (bands.window_rate(spikes, rows, 0, half), bands.window_rate(spikes, rows, half, Tf))
     self_ref = isinstance(radiance, str)
     if self_ref:
         X = _self_radiance(meas.rate, intensity, baseline, H, W)
@@ -231,9 +221,9 @@ def _context(spikes, radiance, intensity: float, baseline: Sensor, Tf: int) -> C
         if X.ndim != 3 or X.shape[1:] != (H, W):
             raise InputError(f"reference radiance is {X.shape[-1]}x{X.shape[-2]}, the stream is {W}x{H}")
     Rb, db = baseline.maps(H, W)
-    static, tested = heldout.motion_test(spikes) if self_ref else (np.ones(H * W, dtype=bool),) * 2
+    static, tested = bands.motion_test(spikes, rows) if self_ref else (np.ones(H * W, dtype=bool),) * 2
     return Context(spikes, X, intensity, baseline, Tf, meas, halves, self_ref, Rb.reshape(-1), db.reshape(-1),
-                   constant_interval_fraction(meas), static, int((~tested).sum()))
+                   constant_interval_fraction(meas), static, int((~tested).sum()), rows)
 
 
 def _self_radiance(rate, intensity, baseline, H, W):
@@ -257,10 +247,3 @@ def _fit_all(ctx: Context) -> Fit:
         fbar = flicker.mean_factor(ctx.Tf) if flicker is not None else 1.0
         rate = fit_rate_model(ctx, flicker, fbar=fbar, outlier=first.outlier)
     return Fit(rate, flicker, pixel_structure(ctx, rate))
-
-
-def _held_out(ctx: Context, sim: np.ndarray) -> dict:
-    """Discrepancy measures (stats.MEASURES) of a sensor's simulation ``sim [T, H, W]`` (seed
-    SIM_SEED) on the held-out frames."""
-    held = slice(ctx.Tf, ctx.frames)
-    return stats.discrepancies(ctx.spikes[held], sim[held], ctx.X.mean(axis=0), measured_stats=_held_stats(ctx)[0])

@@ -12,17 +12,11 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..sensor import Sensor, simulate
-from . import exact, stats
-from .records import (GATES, MIN_COHERENCE, MIN_SPIKES, SIM_SEED, SIM_THREADS, Context, Effect, Fit, judge,
+from ..sensor import Sensor
+from . import bands, exact, stats
+from .records import (GATES, MIN_COHERENCE, MIN_SPIKES, Context, Effect, Fit, judge,
                       rate_from_interval, unavailable)
 from .synth import EFFECTS
-
-def model_simulation(ctx: Context, sensor: Sensor) -> np.ndarray:
-    """``[T, H, W]``: ``sensor``'s stream of the diagnosis' reference radiance over the whole
-    recording (seed SIM_SEED, so every model is compared on the same draws)."""
-    return simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED, threads=SIM_THREADS)
-
 
 MODEL_VARIANCE_SHARE = 0.1  # shot noise must add this much to the model's own interval variance
 SPREAD_BINS = 8  # bins of the light rate in which gain and dark spread are separated
@@ -319,8 +313,8 @@ def _check_flicker_against_model(ctx: Context, fit: Fit, found: dict) -> Effect:
     fl = fit.flicker
     others = {k: v for k, v in found.items() if k != "flicker"}
     sensor = build_sensor(ctx, fit, others, electrons=0.0)
-    sim = model_simulation(ctx, sensor)[:ctx.Tf]
-    own = abs(stats.sine_at(stats.population_signal(sim, fl.mask), fl.light, 1.0 / fl.period_frames))
+    signal = bands.fit_window_pass(ctx, sensor, ctx.rows, mask=fl.mask)["signal"]
+    own = abs(stats.sine_at(signal, fl.light, 1.0 / fl.period_frames))
     eff = found["flicker"]
     eff = replace(eff, parameters={**eff.parameters, "model_depth_at_period": own})
     if fl.depth < 2.0 * own or fl.depth - own < GATES["flicker"][0]:
@@ -348,14 +342,14 @@ def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
     noise is independent from pixel to pixel; when the measured stream has a modulation shared
     by its pixels beyond the model's (:func:`_common_mode`), both streams' intervals are measured
     on their own population's clock (stats.population_clock), which removes it, first."""
-    sim = model_simulation(ctx, deterministic)[:ctx.Tf]
-    common = _common_mode(ctx, fit, sim)
-    meas, ps = ctx.meas, None
+    mask = _common_mask(ctx, fit)
+    sim = bands.fit_window_pass(ctx, deterministic, ctx.rows, mask=mask)
+    common = _common_mode(ctx, mask, sim["quadrants"])
+    meas, ps = ctx.meas, sim["stats"]
     if common["removed"]:
-        mask = common["mask"]
-        meas = stats.pixel_stats(ctx.spikes[:ctx.Tf], stats.population_clock(ctx.spikes[:ctx.Tf], mask))
-        ps = stats.pixel_stats(sim, stats.population_clock(sim, mask))
-    ps = ps or stats.pixel_stats(sim)
+        clock = stats.clock_of(bands.population_signal(ctx.spikes, mask, ctx.rows, 0, ctx.Tf))
+        meas = bands.pixel_stats(ctx.spikes, ctx.rows, 0, ctx.Tf, clock)
+        ps = bands.fit_window_pass(ctx, deterministic, ctx.rows, clock_mask=mask)["stats"]
     noisy = meas.isi_var >= 2.0  # the same estimator for both streams, pixel by pixel
     vm, vs = stats.excess_interval_var(meas, noisy), stats.excess_interval_var(ps, noisy)
     lam = rate_from_interval(ctx.meas.isi_mean, deterministic.refractory_frames)
@@ -382,15 +376,22 @@ def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
     return eff
 
 
-def _common_mode(ctx: Context, fit: Fit, sim: np.ndarray) -> dict:
+def _common_mask(ctx: Context, fit: Fit) -> np.ndarray:
+    """``[P]`` the pixels of :func:`_common_mode`: unsaturated, static, not hot."""
+    return (ctx.meas.rate < 0.9) & (ctx.meas.n >= 3) & ~fit.structure.hot & ctx.static
+
+
+def _common_mode(ctx: Context, mask: np.ndarray, sim_quadrants: np.ndarray) -> dict:
     """A modulation of the light shared by all pixels that the model does not have (outside the
     catalogue unless it is a flicker): the shared variance (stats.shared_variance) of the
-    measured fit window minus that of the model's simulation ``sim [Tf, H, W]``, over unsaturated
-    static pixels that are not hot. ``removed`` when it passes COMMON_Z standard errors and
-    COMMON_MIN_SD (relative SD in windows of stats.COMMON_WINDOW frames)."""
-    mask = (ctx.meas.rate < 0.9) & (ctx.meas.n >= 3) & ~fit.structure.hot & ctx.static
-    vm, sem = stats.shared_variance(ctx.spikes[:ctx.Tf], mask)
-    vs, ses = stats.shared_variance(sim, mask)
+    measured fit window minus that of the model's simulation (its stats.quadrant_counts
+    ``sim_quadrants``), over the pixels of ``mask`` (:func:`_common_mask`). ``removed`` when it
+    passes COMMON_Z standard errors and COMMON_MIN_SD (relative SD in windows of
+    stats.COMMON_WINDOW frames)."""
+    vm, sem = vs, ses = 0.0, math.inf
+    if ctx.Tf // stats.COMMON_WINDOW >= 4 and min(int(q[-1].sum()) for q in stats._quadrants(mask, *ctx.shape)) >= 4:
+        vm, sem = stats.shared_variance_of(bands.quadrant_counts(ctx.spikes, mask, ctx.rows, ctx.Tf))
+        vs, ses = stats.shared_variance_of(sim_quadrants)
     excess, se = vm - vs, math.hypot(sem, ses)
     z = excess / se if se > 0 and math.isfinite(se) else 0.0
     removed = bool(z >= COMMON_Z and excess >= COMMON_MIN_SD ** 2)

@@ -37,7 +37,11 @@ def lstsq(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """Least-squares ``x`` minimising ``|A x - b|`` for ``A [n, p]`` with small ``p``: the normal
     equations, columns scaled to unit norm, solved by LAPACK's minimum-norm least squares (so a
     rank-deficient design still gives a solution with the same fitted values)."""
-    M, v = gram(A), rmatvec(A, b)
+    return solve_normal(gram(A), rmatvec(A, b))
+
+
+def solve_normal(M: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """:func:`lstsq` from its normal equations ``M = gram(A)``, ``v = rmatvec(A, b)``."""
     s = np.sqrt(np.diag(M))
     s = np.where(s > 0, s, 1.0)
     y = np.linalg.lstsq(M / np.outer(s, s), v / s, rcond=None)[0]

@@ -158,18 +158,23 @@ def score(measured: np.ndarray, simulated: np.ndarray, sim_stats: stats.PixelSta
     pixels ``mask [P]``; ``modulation``: the model's (None: none); ``measured_stats``: the
     ``(stats.pixel_stats, stats.interval_pixels)`` of ``measured`` if already computed."""
     if modulation is None:
-        per_pixel = _interval_loglik(measured, sim_stats, measured_stats)
+        held = None if measured_stats is None else (measured_stats[0].isi_values, measured_stats[1])
+        per_pixel = _interval_loglik(measured, (sim_stats.isi_mean, sim_stats.isi_var, sim_stats.n_isi), held)
     else:
         per_pixel = _clock_interval_loglik(measured, simulated, modulation)
     lengths = window_lengths(measured.shape[0])
     for w in lengths:
-        per_pixel = per_pixel + _count_loglik(measured, simulated, sim_stats, mask, w, static_reference,
-                                              modulation) / len(lengths)
+        per_pixel = per_pixel + _count_loglik(measured, simulated, mask, w, static_reference, modulation) / len(lengths)
+    return finish_score(per_pixel, mask)
+
+
+def finish_score(per_pixel: np.ndarray, mask: np.ndarray) -> HeldOutScore:
+    """The :class:`HeldOutScore` of the pixels of ``mask [P]`` from every pixel's nats ``[P]``."""
     per_pixel = np.where(mask, per_pixel, 0.0)
     return HeldOutScore(float(per_pixel[mask].mean()) if mask.any() else 0.0, per_pixel)
 
 
-def _count_loglik(measured, simulated, sim_stats, mask, w: int, static_reference: bool,
+def _count_loglik(measured, simulated, mask, w: int, static_reference: bool,
                   modulation: Modulation | None = None) -> np.ndarray:
     """``[P]`` summed log density of the held-out window counts of length ``w``."""
     Th, T = measured.shape[0], simulated.shape[0]
@@ -179,26 +184,35 @@ def _count_loglik(measured, simulated, sim_stats, mask, w: int, static_reference
         m = w * rate[None, :] * modulation.window_factor(w, T - Th, c.shape[0])
         v = count_variance(simulated, w, True, modulation) * (1.0 + w / T)
     elif static_reference:
-        pop = s[:, mask].sum(axis=1)
-        factor = pop / max(pop.mean(), 1e-12)
         rate = simulated.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
-        m = factor[:, None] * (w * rate)[None, :]
         v = count_variance(simulated, w, True) * (1.0 + w / T)  # the simulated rate's own noise
+        return count_loglik_given(c, s[:, mask].sum(axis=1), rate, w, v)
     else:
         m = s
         v = 2.0 * count_variance(simulated, w, False)  # m is one draw
     return (-0.5 * (np.log(2 * np.pi * v) + (c - m) ** 2 / v)).sum(axis=0)
 
 
-def _interval_loglik(measured, sim_stats: stats.PixelStats, measured_stats: tuple | None = None) -> np.ndarray:
+def count_loglik_given(c: np.ndarray, pop: np.ndarray, rate: np.ndarray, w: int, v: np.ndarray) -> np.ndarray:
+    """``[P]`` summed log density of the measured window counts ``c [n, P]`` with a static
+    reference: means ``w rate [P]`` times the window's population factor (``pop [n]``, the
+    simulated spikes of the window over the mask, over their mean), variances ``v [P]``."""
+    factor = pop / max(pop.mean(), 1e-12)
+    m = factor[:, None] * (w * rate)[None, :]
+    return (-0.5 * (np.log(2 * np.pi * v) + (c - m) ** 2 / v)).sum(axis=0)
+
+
+def _interval_loglik(measured, sim_moments: tuple, measured_intervals: tuple | None = None) -> np.ndarray:
     """``[P]`` summed log density of the held-out intervals under a Gaussian of the simulated
-    interval mean and variance (with the mean's sampling error, at least :data:`VAR_FLOOR`)."""
-    P = sim_stats.n.size
-    ps, pix = measured_stats or (stats.pixel_stats(measured), stats.interval_pixels(measured))
-    n = np.maximum(sim_stats.n_isi, 1)
-    mu = np.where(np.isfinite(sim_stats.isi_mean), sim_stats.isi_mean, measured.shape[0] + 1.0)
-    var = np.maximum(np.nan_to_num(sim_stats.isi_var, nan=0.0) * (1.0 + 1.0 / n), VAR_FLOOR)
-    x = ps.isi_values
+    interval mean and variance (``sim_moments``: ``(isi_mean, isi_var, n_isi)`` of stats.pixel_stats,
+    or stats.interval_moments), the variance with the mean's sampling error and at least
+    :data:`VAR_FLOOR`. ``measured_intervals``: stats.intervals of ``measured`` if already computed."""
+    isi_mean, isi_var, n_isi = sim_moments
+    P = isi_mean.size
+    x, pix = measured_intervals or stats.intervals(measured)
+    n = np.maximum(n_isi, 1)
+    mu = np.where(np.isfinite(isi_mean), isi_mean, measured.shape[0] + 1.0)
+    var = np.maximum(np.nan_to_num(isi_var, nan=0.0) * (1.0 + 1.0 / n), VAR_FLOOR)
     ll = -0.5 * (np.log(2 * np.pi * var[pix]) + (x - mu[pix]) ** 2 / var[pix])
     return np.bincount(pix, weights=ll, minlength=P)
 
@@ -252,16 +266,31 @@ def motion_test(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
     A modulation shared by all pixels (stats.shared_variance, as flicker) moves no pixel: when
     one is found the intervals are measured on the population's clock (stats.population_clock)."""
+    counts_ok = segment_counts_ok(spikes)
+    clock = shared_clock(spikes, counts_ok)
+    return motion_verdict(counts_ok, {k: dispersion_on_clock(spikes, k, *clock) for k in MOTION_SEGMENTS})
+
+
+MOTION_SEGMENTS = (8, 4, 2)  # the segment counts of motion_test's interval tests, in order
+
+
+def segment_counts_ok(spikes: np.ndarray) -> np.ndarray:
+    """``[P]`` test 1 of :func:`motion_test`: the dispersion of the counts in 8 segments."""
     seg = spikes.shape[0] // 8
     c = window_counts(spikes, seg)[:8]
     mean = c.mean(axis=0)
     dispersion = ((c - mean) ** 2).sum(axis=0) / (mean + 1.0)
-    counts_ok = dispersion <= STATIC_DISPERSION
+    return dispersion <= STATIC_DISPERSION
+
+
+def motion_verdict(counts_ok: np.ndarray, tests: dict) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`motion_test` from test 1 and the :func:`interval_dispersion` of each of
+    :data:`MOTION_SEGMENTS` (``{segments: dict}``)."""
     P = counts_ok.size
     tested = np.zeros(P, dtype=bool)
     moving = np.zeros(P, dtype=bool)
-    for segments in (8, 4, 2):
-        test = interval_dispersion(spikes, counts_ok, segments)
+    for segments in MOTION_SEGMENTS:
+        test = tests[segments]
         now = ~tested & (test["dof"] > 0)
         tested |= now
         moving |= now & test["moving"]
@@ -312,20 +341,32 @@ def interval_dispersion(spikes: np.ndarray, mask: np.ndarray, segments: int = 8)
     boundary, and whether any of the three passes its ``1 - STATIC_P`` quantile (the step's
     with Bonferroni's correction over the ``segments - 1`` boundaries); the sample variance of
     ``d`` (NaN below 3) and its count, and the rate (1 / mean interval, 0 below 3 intervals)."""
+    return dispersion_on_clock(spikes, segments, *shared_clock(spikes, mask))
+
+
+def shared_clock(spikes: np.ndarray, mask: np.ndarray) -> tuple:
+    """``(clock [T] or None, its counting variance per frame)`` of :func:`interval_dispersion`: the
+    population clock of the pixels of ``mask [P]`` where they share a modulation, else None, 0."""
+    shared, se = stats.shared_variance(spikes, mask)
+    if not (mask.any() and shared >= 5.0 * se and shared >= 0.01 ** 2):
+        return None, 0.0
     T = spikes.shape[0]
+    lam = spikes.reshape(T, -1)[:, mask].mean(axis=0, dtype=np.float64)
+    return stats.population_clock(spikes, mask), clock_variance(lam)
+
+
+def clock_variance(lam: np.ndarray) -> float:
+    """The population clock's counting variance per frame from the rates ``lam`` of its pixels."""
+    return float((lam * (1.0 - lam)).sum() / max(lam.sum(), 1e-12) ** 2)
+
+
+def dispersion_on_clock(spikes: np.ndarray, segments: int, clock: np.ndarray | None, clock_var: float) -> dict:
+    """:func:`interval_dispersion` given :func:`shared_clock` (each pixel's numbers are its own)."""
     P = int(np.prod(spikes.shape[1:]))
     k = int(segments)
-    seg = T // k
+    seg = spikes.shape[0] // k
     pix, t = stats.spike_times(spikes)
-    shared, se = stats.shared_variance(spikes, mask)
-    clock_var = 0.0
-    if mask.any() and shared >= 5.0 * se and shared >= 0.01 ** 2:
-        clock = stats.population_clock(spikes, mask)
-        lam = spikes.reshape(T, -1)[:, mask].mean(axis=0, dtype=np.float64)
-        clock_var = float((lam * (1.0 - lam)).sum() / max(lam.sum(), 1e-12) ** 2)  # per frame
-        tt = clock[t]
-    else:
-        tt = t.astype(np.float64)
+    tt = t.astype(np.float64) if clock is None else clock[t]
     same = pix[1:] == pix[:-1]
     same2 = same[1:] & same[:-1]
     dd = (tt[2:] - 2 * tt[1:-1] + tt[:-2])[same2]

@@ -11,7 +11,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from ..sensor import interpolation_weights, neighbour_mean
-from . import exact, stats
+from . import bands, exact, stats
 from .records import (GATES, MIN_COHERENCE, MIN_SPIKES, Context, FlickerFit, RateFit, equivalent_isi, flicker_mean_isi,
                       flicker_rate_table, interval_frames)
 
@@ -266,7 +266,7 @@ def fit_flicker(ctx: Context, rate: RateFit | None) -> FlickerFit | None:
         return None
     light_of = _light_of(ctx, weight)
     light = light_of(mask)
-    sine = stats.fit_sine(stats.population_signal(ctx.spikes[:ctx.Tf], mask), light,
+    sine = stats.fit_sine(bands.population_signal(ctx.spikes, mask, ctx.rows, 0, ctx.Tf), light,
                           min_period=6.0, max_period=2.0 * ctx.frames)
     coherence = _coherence(ctx, lam, mask, light_of, sine.period_frames)
     return FlickerFit(sine.period_frames, sine.depth, sine.phase, sine.z, coherence, mask, light)
@@ -302,5 +302,6 @@ def _coherence(ctx: Context, lam, mask, light_of, period_frames) -> float:
     vecs = []
     for gi in range(4):
         m = mask & (groups == gi)
-        vecs.append(stats.sine_at(stats.population_signal(ctx.spikes[:ctx.Tf], m), light_of(m), 1.0 / period_frames))
+        signal = bands.population_signal(ctx.spikes, m, ctx.rows, 0, ctx.Tf)
+        vecs.append(stats.sine_at(signal, light_of(m), 1.0 / period_frames))
     return float(abs(sum(vecs)) / max(sum(abs(v) for v in vecs), 1e-12))

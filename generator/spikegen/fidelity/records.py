@@ -100,7 +100,7 @@ def rate_from_interval(isi_frames: np.ndarray, delta: float) -> np.ndarray:
 class Context:
     """The measured data a diagnosis works on (read-only)."""
 
-    spikes: np.ndarray  # uint8 [T, H, W], the measured stream
+    spikes: "Stream"  # the measured stream [T, H, W] (bands.Stream: read a band of rows at a time)
     X: np.ndarray  # [K, H, W] reference radiance (K sub-frames spread over T)
     intensity: float  # spikes per 256 frames at X = 1
     baseline: Sensor  # sized to H x W
@@ -113,7 +113,7 @@ class Context:
     constant_fraction: float  # of pixels whose intervals never vary (noise-free reset to zero)
     static: np.ndarray | None = None  # [P] bool, pixels whose rate does not change (all with a reference)
     untested: int = 0  # pixels with too few spikes to be tested for a change of rate ('self' only)
-    cache: dict = field(default_factory=dict)  # statistics computed once per diagnosis (diagnose._held_stats)
+    rows: int = 8  # rows of the bands the streams are read and simulated in (bands.band_rows)
 
     @property
     def shape(self) -> tuple:

@@ -52,9 +52,16 @@ class PixelStats:
 def spike_times(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(pixel, frame)`` of every spike, sorted by pixel then frame (``int64 [N]`` each)."""
     T = spikes.shape[0]
-    flat = np.ascontiguousarray(spikes.reshape(T, -1).T)  # [P, T]
-    pix, t = np.nonzero(flat)
-    return pix.astype(np.int64), t.astype(np.int64)
+    frames = spikes.reshape(T, -1)
+    flat = np.empty(frames.shape[::-1], dtype=frames.dtype)  # [P, T]
+    for t0 in range(0, T, TRANSPOSE_FRAMES):  # in blocks of frames: a byte array's plain transpose is 4x slower
+        flat[:, t0: t0 + TRANSPOSE_FRAMES] = frames[t0: t0 + TRANSPOSE_FRAMES].T
+    idx = np.flatnonzero(flat).astype(np.int64, copy=False)
+    pix = idx // max(T, 1)
+    return pix, idx - pix * T
+
+
+TRANSPOSE_FRAMES = 256
 
 
 def grouped_var(values, groups, P, min_count):
@@ -109,6 +116,21 @@ def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None) -> PixelSta
     single = (n_isi >= 3) & (isi_min == isi_max)
     return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi,
                       diff_var)
+
+
+def intervals(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(isi_values, interval pixels)`` of :func:`pixel_stats` and :func:`interval_pixels` alone."""
+    pix, t = spike_times(spikes)
+    same = pix[1:] == pix[:-1]
+    return (t[1:] - t[:-1])[same].astype(np.float64), pix[1:][same]
+
+
+def interval_moments(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(isi_mean, isi_var, n_isi)`` of :func:`pixel_stats` alone (the same numbers, cheaper)."""
+    P = int(np.prod(spikes.shape[1:]))
+    pix, t = spike_times(spikes)
+    same = pix[1:] == pix[:-1]
+    return grouped_var((t[1:] - t[:-1])[same].astype(np.float64), pix[1:][same], P, 3)
 
 
 def _isi_extremes(isi, isi_pix, P):
@@ -189,15 +211,43 @@ def shared_variance(spikes: np.ndarray, mask: np.ndarray, w: int = COMMON_WINDOW
     independently), and an object that moves over part of the image is not in every pair. The
     error is the largest of the pairs' ``sqrt(var_A var_B / (n - 1))`` over ``n`` windows."""
     T, H, W = spikes.shape[0], spikes.shape[1], int(np.prod(spikes.shape[2:]))
-    n = T // w
-    mask = np.asarray(mask).reshape(H, W)
-    quads = [mask[:H // 2, :W // 2], mask[:H // 2, W // 2:], mask[H // 2:, :W // 2], mask[H // 2:, W // 2:]]
-    if n < 4 or min(int(q.sum()) for q in quads) < 4:
+    if T // w < 4 or min(int(q[-1].sum()) for q in _quadrants(mask, H, W)) < 4:
         return 0.0, math.inf
-    windows = spikes[: n * w].reshape(n, w, H, W).sum(axis=1, dtype=np.int32)
+    return shared_variance_of(quadrant_counts(spikes.reshape(T, H, W), mask, w))
+
+
+def _quadrants(mask, H, W) -> list:
+    """``(r0, r1, c0, c1, mask of that quadrant)`` of the four quadrants of an ``H x W`` image."""
+    mask = np.asarray(mask).reshape(H, W)
+    return [(r0, r1, c0, c1, mask[r0:r1, c0:c1]) for r0, r1 in ((0, H // 2), (H // 2, H))
+            for c0, c1 in ((0, W // 2), (W // 2, W))]
+
+
+def quadrant_counts(spikes: np.ndarray, mask: np.ndarray, w: int = COMMON_WINDOW, top: int = 0,
+                    height: int | None = None) -> np.ndarray:
+    """``int64 [4, T // w]``: spikes of the pixels of ``mask`` in each quadrant of the image
+    (:func:`shared_variance`) in windows of ``w`` frames, counted in ``spikes [T, rows, W]``, the
+    rows ``top:top + rows`` of an image of ``height`` rows (default: the whole image) whose
+    ``mask`` is ``[height, W]`` (or ``[P]``). The counts of the bands of an image add up to its own."""
+    T, rows, W = spikes.shape
+    H = height or rows
+    n = T // w
+    windows = spikes[: n * w].reshape(n, w, rows, W).sum(axis=1, dtype=np.int32)
+    out = np.zeros((4, n), dtype=np.int64)
+    for k, (r0, r1, c0, c1, _) in enumerate(_quadrants(mask, H, W)):
+        a, b = max(r0, top) - top, min(r1, top + rows) - top
+        if a < b:
+            m = np.asarray(mask).reshape(H, W)[top + a: top + b, c0:c1]
+            out[k] = windows[:, a:b, c0:c1][:, m].sum(axis=1, dtype=np.int64)
+    return out
+
+
+def shared_variance_of(counts: np.ndarray) -> tuple[float, float]:
+    """:func:`shared_variance` from the quadrants' counts ``[4, n]`` (:func:`quadrant_counts`;
+    at least 4 windows and 4 pixels a quadrant)."""
+    n = counts.shape[1]
     rel = []
-    for r0, c0, q in ((0, 0, quads[0]), (0, W // 2, quads[1]), (H // 2, 0, quads[2]), (H // 2, W // 2, quads[3])):
-        pop = windows[:, r0: r0 + q.shape[0], c0: c0 + q.shape[1]][:, q].sum(axis=1, dtype=np.int64).astype(np.float64)
+    for pop in counts.astype(np.float64):
         rel.append(pop / max(float(pop.mean()), 1e-12) - 1.0)
     cov = [float((a * b).sum()) / (n - 1) for k, a in enumerate(rel) for b in rel[k + 1:]]
     var = [float((a * a).sum()) / (n - 1) for a in rel]
@@ -210,8 +260,12 @@ def population_clock(spikes: np.ndarray, mask: np.ndarray) -> np.ndarray:
     ``sum_{u <= t} S(u) / mean(S)`` with ``S`` its spikes per frame. Intervals measured on it
     lose a modulation of the light shared by all pixels (as a pixel of rate ``lambda phi(t)``
     fires every ``1 / lambda`` of ``sum phi``)."""
-    s = population_signal(spikes, mask)
-    return np.cumsum(s / max(float(s.mean()), 1e-12))
+    return clock_of(population_signal(spikes, mask))
+
+
+def clock_of(signal: np.ndarray) -> np.ndarray:
+    """:func:`population_clock` from the population signal ``[T]`` (:func:`population_signal`)."""
+    return np.cumsum(signal / max(float(signal.mean()), 1e-12))
 
 
 # ---------------------------------------------------------------------- population signal
@@ -251,6 +305,24 @@ def _sine_rss(s, t, light, freq):
     return exact.dot(r, r), coef
 
 
+SINE_BATCH = 16  # frequencies of fit_sine's grid fitted together
+
+
+def _sine_rss_grid(s, t, light, freqs) -> np.ndarray:
+    """``[F]`` :func:`_sine_rss` of each frequency, a batch of SINE_BATCH at a time: each design is
+    built alone, and the normal equations, fitted values and residual sums are the same reductions
+    (over frames, in their order) as exact.gram / rmatvec / matvec / dot of one design."""
+    out = np.empty(freqs.size)
+    for i in range(0, freqs.size, SINE_BATCH):
+        A = np.stack([_sine_design(t, light, f) for f in freqs[i: i + SINE_BATCH]])  # [F, T, 4]
+        M = (A[:, :, :, None] * A[:, :, None, :]).sum(axis=1)
+        v = (A * s[None, :, None]).sum(axis=1)
+        coef = np.stack([exact.solve_normal(m, b) for m, b in zip(M, v)])
+        r = s[None, :] - (A * coef[:, None, :]).sum(axis=2)
+        out[i: i + A.shape[0]] = (r * r).sum(axis=1)
+    return out
+
+
 def fit_sine(signal: np.ndarray, light: np.ndarray, min_period: float = 6.0, max_period: float | None = None) -> SineFit:
     """Fit ``s(t) = c0 + c1 L(t) + L(t) (a sin wt + b cos wt)`` over a grid of periods.
 
@@ -265,7 +337,7 @@ def fit_sine(signal: np.ndarray, light: np.ndarray, min_period: float = 6.0, max
     light = np.asarray(light, dtype=np.float64)
     max_period = max_period or 2.0 * T
     freqs = np.arange(1.0 / max_period, 1.0 / min_period, 1.0 / (4 * T))
-    rss = np.array([_sine_rss(s, t, light, f)[0] for f in freqs])
+    rss = _sine_rss_grid(s, t, light, freqs)
     null = np.stack([np.ones_like(t), light], axis=1)
     coef0 = exact.lstsq(null, s)
     rss0 = float(np.sum((s - exact.matvec(null, coef0)) ** 2))
@@ -348,9 +420,19 @@ def discrepancies(measured: np.ndarray, simulated: np.ndarray, radiance_mean: np
     pm, ps = measured_stats or pixel_stats(measured), pixel_stats(simulated)
     T = measured.shape[0]
     cm, cs = measured.reshape(T, -1).mean(0), simulated.reshape(T, -1).mean(0)
+    H, W = measured.shape[1:]
+    return discrepancy_measures(pm, ps, cm, cs, radiance_mean, H, W, isi_histogram(pm.isi_values, T),
+                                isi_histogram(ps.isi_values, T), population_counts(measured),
+                                population_counts(simulated))
+
+
+def discrepancy_measures(pm: PixelStats, ps: PixelStats, cm, cs, radiance_mean, H: int, W: int, hm, hs,
+                         popm, pops) -> dict:
+    """:func:`discrepancies` from its parts: the two streams' :func:`pixel_stats` (``isi_values``
+    only counted), mean counts per frame ``cm, cs [P]``, interval histograms ``hm, hs``
+    (:func:`isi_histogram`) and population counts ``popm, pops [T]`` (:func:`population_counts`)."""
     ok = pm.n >= 2
     rel = (ps.rate[ok] - pm.rate[ok]) / pm.rate[ok]
-    H, W = measured.shape[1:]
     colm, cols = cm.reshape(H, W).mean(0), cs.reshape(H, W).mean(0)
     good = colm > 0
     dark = np.asarray(radiance_mean).reshape(-1) <= np.quantile(radiance_mean, 0.1)
@@ -359,10 +441,10 @@ def discrepancies(measured: np.ndarray, simulated: np.ndarray, radiance_mean: np
         "column_profile_rmse": _rms(cols[good] / colm[good] - 1.0),
         "dark_rate_error": float(abs(cs[dark].mean() - cm[dark].mean())),
         "hot_pixel_error": float(np.mean(np.abs(cs - cm) > 0.03)),
-        "isi_histogram_tv": _isi_tv(pm.isi_values, ps.isi_values, T),
+        "isi_histogram_tv": histogram_tv(hm, hs),
         "isi_cv_error": _cv_error(pm, ps),
         "consecutive_fraction_error": float(abs(_frac_ones(pm) - _frac_ones(ps))),
-        "spectrum_log_rmse": _spectrum_error(measured, simulated),
+        "spectrum_log_rmse": _spectrum_error(popm, pops),
     }
 
 
@@ -371,12 +453,23 @@ def _rms(a) -> float:
     return float(np.sqrt(np.mean(a * a))) if a.size else 0.0
 
 
+def isi_histogram(isi: np.ndarray, T: int) -> np.ndarray:
+    """``int64 [T + 1]``: how many of the intervals ``isi`` (whole frames, of a stream of ``T``
+    frames) last each number of frames."""
+    return np.bincount(isi.astype(np.int64), minlength=T + 1)
+
+
+def histogram_tv(ha: np.ndarray, hb: np.ndarray) -> float:
+    """Total-variation distance of two interval histograms (:func:`isi_histogram`); 1 when one is
+    empty and the other not, 0 when both are."""
+    na, nb = int(ha.sum()), int(hb.sum())
+    if na == 0 or nb == 0:
+        return float(na != nb)
+    return float(0.5 * np.abs(ha / na - hb / nb).sum())
+
+
 def _isi_tv(a, b, T) -> float:
-    if a.size == 0 or b.size == 0:
-        return float(a.size != b.size)
-    ha = np.bincount(a.astype(np.int64), minlength=T + 1) / a.size
-    hb = np.bincount(b.astype(np.int64), minlength=T + 1) / b.size
-    return float(0.5 * np.abs(ha - hb).sum())
+    return histogram_tv(isi_histogram(a, T), isi_histogram(b, T))
 
 
 def _cv_error(pm: PixelStats, ps: PixelStats) -> float:
@@ -392,14 +485,20 @@ def _frac_ones(p: PixelStats) -> float:
     return float(p.ones.sum() / max(p.isi_values.size, 1))
 
 
+def population_counts(spikes: np.ndarray) -> np.ndarray:
+    """``int64 [T]``: spikes per frame of all pixels."""
+    return spikes.reshape(spikes.shape[0], -1).sum(axis=1, dtype=np.int64)
+
+
 def _spectrum_error(a, b, bands=16) -> float:
+    """From the population counts ``a, b [T]`` (:func:`population_counts`) of two streams."""
     pa, pb = _band_power(a, bands), _band_power(b, bands)
     return _rms(np.log10(pa + 1e-12) - np.log10(pb + 1e-12))
 
 
-def _band_power(spikes, bands):
-    T = spikes.shape[0]
-    s = spikes.reshape(T, -1).sum(axis=1, dtype=np.int64).astype(np.float64)
+def _band_power(counts, bands):
+    T = counts.shape[0]
+    s = counts.astype(np.float64)
     p = np.abs(np.fft.rfft(s - s.mean())) ** 2 / T
     edges = np.unique(np.geomspace(1, p.size, bands + 1).astype(int))
     return np.array([p[a:b].mean() for a, b in zip(edges[:-1], edges[1:])])

@@ -53,50 +53,47 @@ def _rate_checks(c, s, var, mask, H, W) -> list:
     return found
 
 
-def _frame_check(meas, sim, sim_full, mask) -> list:
-    """Population count in windows of 4 frames, its deviation beyond the pixels' own noise."""
-    w = 4
-    c, s = heldout.window_counts(meas, w)[:, mask], heldout.window_counts(sim, w)[:, mask]
-    if c.shape[0] < 8 or c.shape[1] == 0:
+def _frame_check(frame: dict, var4, mask) -> list:
+    """Population count in windows of 4 frames, its deviation beyond the pixels' own noise:
+    ``frame`` holds the measured and simulated population counts of the windows over the mask
+    (``"c"``, ``"s"``) and their number ``"n"``; ``var4 [P]`` each pixel's predictive variance in
+    4 frames (heldout.count_variance)."""
+    if frame["n"] < 8 or not mask.any():
         return []
-    var = 2.0 * heldout.count_variance(sim_full, w, True)[mask].sum()
-    d = c.sum(axis=1) - s.sum(axis=1)
+    var = 2.0 * var4[mask].sum()
+    d = frame["c"] - frame["s"]
     d = d - d.mean()
     n = d.size
     excess = (float((d * d).sum() / var) - (n - 1)) / math.sqrt(2 * (n - 1))
-    rel = stats._rms(d) / max(float(s.sum(axis=1).mean()), 1e-12)
+    rel = stats._rms(d) / max(float(frame["s"].mean()), 1e-12)
     return [_entry("rate_per_frame", rel, excess, 0.01)] if excess > Z_MIN and rel > 0.01 else []
 
 
-def _dispersion_check(meas, sim, mask) -> list:
-    """Variance of each pixel's counts in windows of 16 frames, measured against simulated."""
-    w = 16
-    c, s = heldout.window_counts(meas, w)[:, mask], heldout.window_counts(sim, w)[:, mask]
-    if c.shape[0] < 4 or c.shape[1] < 20:
+def _dispersion_check(d: np.ndarray, s_var: np.ndarray) -> list:
+    """Variance of each pixel's counts in windows of 16 frames, measured against simulated:
+    ``d [pixels]`` their difference, ``s_var`` the simulated one (pixels of the mask; none with
+    fewer than 4 windows)."""
+    if d.size < 20:
         return []
-    d = c.var(axis=0, ddof=1) - s.var(axis=0, ddof=1)
-    base = float(s.var(axis=0, ddof=1).mean()) + 1.0 / 6.0
+    base = float(s_var.mean()) + 1.0 / 6.0
     z = float(d.mean() / max(d.std() / math.sqrt(d.size), 1e-12))
     rel = float(d.mean()) / base
     return [_entry("count_dispersion", rel, z, 0.25)] if z > Z_MIN and rel > 0.25 else []
 
 
-def _interval_checks(meas, sim, mask) -> list:
-    """Serial correlation of consecutive intervals and the pooled interval histogram."""
-    pm, ps = stats.pixel_stats(meas), stats.pixel_stats(sim)
+def _interval_checks(rm, rs, hm, hs) -> list:
+    """Serial correlation of consecutive intervals (``rm, rs``: those of the measured and the
+    simulated pixels of the mask with enough noisy intervals) and the pooled interval histograms
+    of the mask's pixels (``hm, hs``, stats.isi_histogram)."""
     found = []
-    rm, rs = (stats.serial_correlation(x)[mask & (p.isi_var >= 2.0) & (p.n_isi >= 8)] for x, p in
-              ((meas, pm), (sim, ps)))
     rm, rs = rm[np.isfinite(rm)], rs[np.isfinite(rs)]
     if rm.size >= 20 and rs.size >= 20:
         diff = float(rm.mean() - rs.mean())
         z = abs(diff) / math.sqrt(rm.var() / rm.size + rs.var() / rs.size + 1e-18)
         if z > Z_MIN and abs(diff) > 0.1:
             found.append(_entry("serial_correlation", diff, z, 0.1))
-    keep = np.flatnonzero(mask)
-    a, b = (p.isi_values[np.isin(stats.interval_pixels(x), keep)] for x, p in ((meas, pm), (sim, ps)))
-    if a.size >= 100 and b.size >= 100:
-        tv = stats._isi_tv(a, b, meas.shape[0])
+    if hm.sum() >= 100 and hs.sum() >= 100:
+        tv = stats.histogram_tv(hm, hs)
         if tv > 0.1:
             found.append(_entry("isi_distribution", tv, math.inf, 0.1))
     return found
@@ -111,8 +108,28 @@ def unexplained(meas: np.ndarray, sim_full: np.ndarray, mask: np.ndarray, static
     c = meas.reshape(Th, -1).sum(axis=0, dtype=np.int64).astype(np.float64)
     s = sim.reshape(Th, -1).sum(axis=0, dtype=np.int64).astype(np.float64)
     var = 2.0 * heldout.count_variance(sim_full, Th, static_reference)
+    w4 = [heldout.window_counts(x, 4)[:, mask] for x in (meas, sim)]
+    frame = {"c": w4[0].sum(axis=1), "s": w4[1].sum(axis=1), "n": w4[0].shape[0]}
+    c16, s16 = (heldout.window_counts(x, 16)[:, mask] for x in (meas, sim))
+    lists = {"disp_d": np.zeros(0), "disp_s": np.zeros(0)}
+    if c16.shape[0] >= 4:
+        lists = {"disp_d": c16.var(axis=0, ddof=1) - s16.var(axis=0, ddof=1), "disp_s": s16.var(axis=0, ddof=1)}
+    pm, ps = stats.pixel_stats(meas), stats.pixel_stats(sim)
+    lists["rm"], lists["rs"] = (stats.serial_correlation(x)[mask & (p.isi_var >= 2.0) & (p.n_isi >= 8)]
+                                for x, p in ((meas, pm), (sim, ps)))
+    keep = np.flatnonzero(mask)
+    hm, hs = (stats.isi_histogram(p.isi_values[np.isin(stats.interval_pixels(x), keep)], Th)
+              for x, p in ((meas, pm), (sim, ps)))
+    return checks_from_parts(c, s, var, mask, H, W, frame, heldout.count_variance(sim_full, 4, True), lists, hm, hs)
+
+
+def checks_from_parts(c, s, var, mask, H: int, W: int, frame: dict, var4, lists: dict, hm, hs) -> list:
+    """:func:`unexplained` from its parts: whole held-out counts ``c, s`` and their predictive
+    variance ``var`` (``[P]`` each), the windows of 4 frames (:func:`_frame_check`), the dispersion
+    of windows of 16 frames and the serial correlations (``lists``: ``"disp_d"``, ``"disp_s"``,
+    ``"rm"``, ``"rs"``) and the mask's interval histograms."""
     found = _rate_checks(c, s, var, mask, H, W)
-    found += _frame_check(meas, sim, sim_full, mask)
-    found += _dispersion_check(meas, sim, mask)
-    found += _interval_checks(meas, sim, mask)
+    found += _frame_check(frame, var4, mask)
+    found += _dispersion_check(lists["disp_d"], lists["disp_s"])
+    found += _interval_checks(lists["rm"], lists["rs"], hm, hs)
     return found

@@ -1,0 +1,321 @@
+"""``spikegen diagnose`` a band of rows at a time: the measured stream and its models' simulations.
+
+A stream of the whole recording is ``T x H x W`` bytes (2 GB for one second, 20000 frames, of a
+250 x 400 camera), and the timing statistics of all its spikes take several times that. What the
+diagnosis takes of a stream is per-pixel statistics (counts, intervals, windows) and sums over
+pixels of counts per frame or window (population signals, quadrant counts). So the measured
+stream is kept packed (:class:`Stream`, 8 pixels a byte) and unpacked a band of rows at a time,
+and each model's simulation is made a block of bands at a time (:func:`simulated_bands`) and
+reduced band by band. The simulator draws each block of sensor.CHUNK_ROWS rows from its own
+random stream (sensor.simulate, ``rows``), so rows simulated alone are the same as those rows of
+the whole simulation; each pixel's statistics are computed by the same functions from its own
+spikes; sums over pixels are of whole numbers, exact in any order. What needs every pixel (the
+held-out windows' population factor, row, column and mask means, the shared clock) is done
+after a pass, on the per-pixel arrays. tests/test_diagnose.py checks that a diagnosis in bands
+of 8 rows gives the same JSON, bit for bit, as one in a single band.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from ..sensor import CHUNK_ROWS, Sensor, simulate
+from . import heldout, stats
+from .records import SIM_SEED, SIM_THREADS, Context
+from .unexplained import checks_from_parts
+
+BAND_BYTES = 1 << 26  # bytes of one band of a dense stream [T, rows, W] (64 MiB) when no band is asked for
+
+
+class Stream:
+    """A measured stream ``[T, H, W]`` of 0/1, read a band of rows at a time: held dense
+    (``uint8``) or packed, 8 pixels of a row a byte (``np.packbits(..., axis=-1,
+    bitorder="little")``, as spikeio's ``.npz`` keeps it: an eighth of the memory)."""
+
+    def __init__(self, shape: tuple, dense: np.ndarray | None = None, packed: np.ndarray | None = None):
+        self.shape = tuple(int(v) for v in shape)
+        self._dense, self._packed = dense, packed
+
+    @classmethod
+    def of(cls, spikes) -> "Stream":
+        """``spikes`` itself if a :class:`Stream`, else the dense array ``[T, H, W]`` as one."""
+        return spikes if isinstance(spikes, Stream) else cls(np.shape(spikes), dense=spikes)
+
+    @property
+    def frames(self) -> int:
+        return self.shape[0]
+
+    def rows(self, r0: int, r1: int, t0: int = 0, t1: int | None = None) -> np.ndarray:
+        """``uint8 [t1 - t0, r1 - r0, W]``: frames ``t0:t1`` of rows ``r0:r1`` (a view of a dense stream)."""
+        if self._dense is not None:
+            return self._dense[t0:t1, r0:r1]
+        return np.unpackbits(self._packed[t0:t1, r0:r1], axis=-1, bitorder="little", count=self.shape[2])
+
+    def dense(self) -> np.ndarray:
+        """The whole stream, ``uint8 [T, H, W]`` (unpacked if packed)."""
+        return self._dense if self._dense is not None else self.rows(0, self.shape[1])
+
+
+def band_rows(frames: int, height: int, width: int, rows: int | None = None) -> int:
+    """Rows of a band: ``rows`` (a positive multiple of sensor.CHUNK_ROWS), or the most
+    (a multiple of CHUNK_ROWS, at least CHUNK_ROWS) whose dense stream fits in BAND_BYTES."""
+    if rows is None:
+        rows = max(CHUNK_ROWS, (BAND_BYTES // max(frames * width, 1)) // CHUNK_ROWS * CHUNK_ROWS)
+    elif rows <= 0 or rows % CHUNK_ROWS:
+        raise ValueError(f"band rows must be a positive multiple of {CHUNK_ROWS}, got {rows}")
+    return min(int(rows), height)
+
+
+def bands(height: int, rows: int):
+    """``(r0, r1)`` of each band of ``rows`` rows, top to bottom."""
+    return [(r0, min(height, r0 + rows)) for r0 in range(0, height, rows)]
+
+
+def simulate_rows(ctx: Context, sensor: Sensor, r0: int, r1: int) -> np.ndarray:
+    """``[T, r1 - r0, W]``: rows ``r0:r1`` of ``sensor``'s stream of the diagnosis' reference
+    radiance over the whole recording (seed SIM_SEED, so every model is compared on the same draws)."""
+    return simulate(ctx.X, ctx.intensity, sensor, frames=ctx.frames, seed=SIM_SEED, threads=SIM_THREADS,
+                    rows=(r0, r1))
+
+
+SIM_BYTES = 1 << 28  # bytes of a block of simulated rows [T, rows, W] (256 MiB; its noise draws take twice that)
+
+
+def simulated_bands(ctx: Context, sensor: Sensor, rows: int):
+    """``(r0, r1, rows r0:r1 of the simulation)`` for each band of ``rows`` rows: simulated a
+    block of several bands at a time (up to SIM_BYTES), since the simulator steps through the
+    frames in Python and a block of few pixels would spend its time there."""
+    T, (H, W) = ctx.frames, ctx.shape
+    block = max(rows, (SIM_BYTES // max(T * W, 1)) // rows * rows)
+    for b0 in range(0, H, block):
+        b1 = min(H, b0 + block)
+        sim = simulate_rows(ctx, sensor, b0, b1)
+        for r0, r1 in bands(b1 - b0, rows):
+            yield b0 + r0, b0 + r1, sim[:, r0:r1]
+        del sim
+
+
+def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: bool = False) -> dict:
+    """The held-out score of ``sensor`` (``"score"``: heldout.HeldOutScore, as heldout.score of its
+    whole simulation), with ``measures`` also ``"measures"`` (stats.discrepancies of its held-out
+    frames) and with ``checks`` ``"unexplained"`` (unexplained.unexplained), in one pass over
+    bands of ``ctx.rows`` rows of its simulation."""
+    T, Tf, rows = ctx.frames, ctx.Tf, ctx.rows
+    Th = T - Tf
+    H, W = ctx.shape
+    P = H * W
+    static_ref = ctx.X.shape[0] == 1
+    mask = ctx.static
+    modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, T)
+    lengths = heldout.window_lengths(Th)
+    pooled = static_ref and modulation is None  # the count means need the population factor of all pixels
+    interval_ll = np.zeros(P)
+    count_ll = {w: np.zeros(P) for w in lengths}
+    rate, cvar = np.zeros(P), {w: np.zeros(P) for w in lengths}
+    pop = {w: 0.0 for w in lengths}
+    acc = _Accumulators(P, Th) if (measures or checks) else None
+    for r0, r1, sim in simulated_bands(ctx, sensor, rows):
+        sl = slice(r0 * W, r1 * W)
+        meas = ctx.spikes.rows(r0, r1, Tf)
+        band_mask = mask[sl]
+        if modulation is None:
+            interval_ll[sl] = heldout._interval_loglik(meas, stats.interval_moments(sim))
+            band_mod = None
+        else:
+            band_mod = heldout.Modulation(modulation.phi, modulation.share[sl])
+            interval_ll[sl] = heldout._clock_interval_loglik(meas, sim, band_mod)
+        if pooled:
+            rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
+        for w in lengths:
+            if pooled:
+                s = heldout.window_counts(sim[T - Th:], w)
+                pop[w] = pop[w] + s[:, band_mask].sum(axis=1)
+                cvar[w][sl] = heldout.count_variance(sim, w, True) * (1.0 + w / T)
+            else:
+                count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, static_ref, band_mod)
+        if acc is not None:
+            acc.add(sl, meas, sim, band_mask, static_ref, checks)
+    if pooled:  # heldout._count_loglik's static branch, with the factor of the whole population
+        for r0, r1 in bands(H, rows):
+            sl = slice(r0 * W, r1 * W)
+            for w in lengths:
+                c = heldout.window_counts(ctx.spikes.rows(r0, r1, Tf), w)
+                count_ll[w][sl] = heldout.count_loglik_given(c, pop[w], rate[sl], w, cvar[w][sl])
+    per_pixel = interval_ll
+    for w in lengths:
+        per_pixel = per_pixel + count_ll[w] / len(lengths)
+    out = {"score": heldout.finish_score(per_pixel, mask)}
+    if measures:
+        out["measures"] = acc.measures(ctx.X.mean(axis=0), H, W)
+    if checks:
+        out["unexplained"] = acc.unexplained(mask, H, W)
+    return out
+
+
+class _Accumulators:
+    """What stats.discrepancies and unexplained.unexplained take from the two streams, band by band."""
+
+    def __init__(self, P: int, Th: int):
+        self.Th = Th
+        self.fields = {}
+        self.spectrum = {"m": np.zeros(Th, dtype=np.int64), "s": np.zeros(Th, dtype=np.int64)}
+        self.hist = {k: np.zeros(Th + 1, dtype=np.int64) for k in ("m", "s", "m_mask", "s_mask")}
+        self.frame = {"c": 0.0, "s": 0.0}
+        self.lists = {k: [] for k in ("rm", "rs", "disp_d", "disp_s")}
+        self.P = P
+
+    def _put(self, name, sl, values):
+        if name not in self.fields:
+            self.fields[name] = np.zeros(self.P, dtype=np.asarray(values).dtype)
+        self.fields[name][sl] = values
+
+    def add(self, sl, meas, sim_full, mask, static_ref, checks):
+        Th, T = self.Th, sim_full.shape[0]
+        sim = sim_full[T - Th:]
+        pm, ps = stats.pixel_stats(meas), stats.pixel_stats(sim)
+        hm, hs = stats.isi_histogram(pm.isi_values, Th), stats.isi_histogram(ps.isi_values, Th)
+        self.hist["m"] += hm
+        self.hist["s"] += hs
+        for k, p in (("m", pm), ("s", ps)):
+            for f in ("rate", "n", "n_isi", "isi_var", "isi_mean", "ones"):
+                self._put(f"{k}_{f}", sl, getattr(p, f))
+        self._put("cm", sl, meas.reshape(Th, -1).mean(0))
+        self._put("cs", sl, sim.reshape(Th, -1).mean(0))
+        self.spectrum["m"] += meas.reshape(Th, -1).sum(axis=1, dtype=np.int64)
+        self.spectrum["s"] += sim.reshape(Th, -1).sum(axis=1, dtype=np.int64)
+        if not checks:
+            return
+        c = meas.reshape(Th, -1).sum(axis=0, dtype=np.int64).astype(np.float64)
+        s = sim.reshape(Th, -1).sum(axis=0, dtype=np.int64).astype(np.float64)
+        self._put("c", sl, c)
+        self._put("s", sl, s)
+        self._put("var", sl, 2.0 * heldout.count_variance(sim_full, Th, static_ref))
+        self._put("var4", sl, heldout.count_variance(sim_full, 4, True))
+        w4 = [heldout.window_counts(x, 4)[:, mask] for x in (meas, sim)]
+        self.frame["c"] = self.frame["c"] + w4[0].sum(axis=1)
+        self.frame["s"] = self.frame["s"] + w4[1].sum(axis=1)
+        self.frame["n"] = w4[0].shape[0]
+        c16, s16 = (heldout.window_counts(x, 16)[:, mask] for x in (meas, sim))
+        self.frame["n16"] = c16.shape[0]
+        if c16.shape[0] >= 4:
+            self.lists["disp_d"].append(c16.var(axis=0, ddof=1) - s16.var(axis=0, ddof=1))
+            self.lists["disp_s"].append(s16.var(axis=0, ddof=1))
+        for key, x, p in (("rm", meas, pm), ("rs", sim, ps)):
+            r = stats.serial_correlation(x)[mask & (p.isi_var >= 2.0) & (p.n_isi >= 8)]
+            self.lists[key].append(r)
+        keep = np.flatnonzero(mask)
+        for key, x, p in (("m_mask", meas, pm), ("s_mask", sim, ps)):
+            self.hist[key] += stats.isi_histogram(p.isi_values[np.isin(stats.interval_pixels(x), keep)], Th)
+
+    def _stats(self, k):
+        f = self.fields
+        return stats.PixelStats(self.Th, f[f"{k}_n"], None, None, f[f"{k}_rate"], f[f"{k}_isi_mean"],
+                                f[f"{k}_isi_var"], None, None, None, f[f"{k}_ones"], f[f"{k}_n_isi"],
+                                np.empty(int(self.hist[k].sum())), None)
+
+    def measures(self, radiance_mean, H, W) -> dict:
+        """stats.discrepancies of the held-out frames, from the accumulated parts."""
+        return stats.discrepancy_measures(self._stats("m"), self._stats("s"), self.fields["cm"], self.fields["cs"],
+                                          radiance_mean, H, W, self.hist["m"], self.hist["s"],
+                                          self.spectrum["m"], self.spectrum["s"])
+
+    def unexplained(self, mask, H, W) -> list:
+        cat = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in self.lists.items()}
+        return checks_from_parts(self.fields["c"], self.fields["s"], self.fields["var"], mask, H, W,
+                                 self.frame, self.fields["var4"], cat, self.hist["m_mask"], self.hist["s_mask"])
+
+
+# ---------------------------------------------------------------------- the measured stream's fit window
+def pixel_stats(stream: Stream, rows: int, t0: int = 0, t1: int | None = None, clock=None) -> stats.PixelStats:
+    """stats.pixel_stats of frames ``t0:t1`` of ``stream``, band by band (the same numbers), but
+    without the pooled intervals (``isi_values`` is None: they are as many as the spikes)."""
+    parts = [stats.pixel_stats(stream.rows(r0, r1, t0, t1), clock) for r0, r1 in bands(stream.shape[1], rows)]
+    for p in parts:
+        p.isi_values = None
+    return join_stats(parts)
+
+
+def join_stats(parts: list) -> stats.PixelStats:
+    """One stats.PixelStats of the pixels of ``parts`` (band by band, top to bottom); their
+    ``isi_values`` joined (None if any is None)."""
+    def cat(name):
+        values = [getattr(p, name) for p in parts]
+        return None if any(v is None for v in values) else np.concatenate(values)
+
+    fields = ("n", "first", "last", "rate", "isi_mean", "isi_var", "span_var", "isi_min", "single", "ones", "n_isi",
+              "isi_values", "diff_var")
+    return stats.PixelStats(parts[0].frames, *(cat(f) for f in fields))
+
+
+def window_rate(stream: Stream, rows: int, t0: int, t1: int) -> np.ndarray:
+    """stats.window_rate of frames ``t0:t1`` of ``stream``, band by band."""
+    return np.concatenate([stats.window_rate(stream.rows(r0, r1, t0, t1)) for r0, r1 in bands(stream.shape[1], rows)])
+
+
+def population_signal(stream: Stream, mask: np.ndarray, rows: int, t0: int = 0, t1: int | None = None) -> np.ndarray:
+    """stats.population_signal of frames ``t0:t1`` of ``stream`` over ``mask [P]``: whole numbers
+    summed band by band (the same numbers)."""
+    W = stream.shape[2]
+    mask = np.asarray(mask).reshape(-1)
+    total = 0
+    for r0, r1 in bands(stream.shape[1], rows):
+        band = stream.rows(r0, r1, t0, t1)
+        total = total + band.reshape(band.shape[0], -1)[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
+    return np.asarray(total).astype(np.float64)
+
+
+def quadrant_counts(stream: Stream, mask: np.ndarray, rows: int, t1: int) -> np.ndarray:
+    """stats.quadrant_counts of the first ``t1`` frames of ``stream`` over ``mask [P]``, band by band."""
+    H = stream.shape[1]
+    return sum(stats.quadrant_counts(stream.rows(r0, r1, 0, t1), mask, top=r0, height=H) for r0, r1 in bands(H, rows))
+
+
+def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | None = None,
+                    clock_mask: np.ndarray | None = None) -> dict:
+    """Of ``sensor``'s simulation's fit window (its first ``Tf`` frames), band by band:
+    ``"stats"`` (stats.pixel_stats, without ``isi_values``), with ``mask [P]`` also ``"quadrants"``
+    (stats.quadrant_counts) and ``"signal"`` (stats.population_signal over ``mask``), with
+    ``clock_mask`` the stats measured on the population clock of those pixels instead (two passes)."""
+    H, W = ctx.shape
+    Tf = ctx.Tf
+    clock = None
+    if clock_mask is not None:
+        signal = 0
+        for r0, r1, band in simulated_bands(ctx, sensor, rows):
+            band = band[:Tf]
+            signal = signal + band.reshape(Tf, -1)[:, clock_mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
+        clock = stats.clock_of(np.asarray(signal).astype(np.float64))
+    parts, quads, signal = [], 0, 0
+    for r0, r1, band in simulated_bands(ctx, sensor, rows):
+        band = band[:Tf]
+        p = stats.pixel_stats(band, clock)
+        p.isi_values = None
+        parts.append(p)
+        if mask is not None:
+            quads = quads + stats.quadrant_counts(band, mask, top=r0, height=H)
+            signal = signal + band.reshape(Tf, -1)[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
+    out = {"stats": join_stats(parts)}
+    if mask is not None:
+        out["quadrants"], out["signal"] = quads, np.asarray(signal).astype(np.float64)
+    return out
+
+
+def motion_test(stream: Stream, rows: int) -> tuple[np.ndarray, np.ndarray]:
+    """heldout.motion_test of ``stream``, band by band: the shared clock from the population
+    counts and the rates of all bands, then each pixel's tests in its band (the same numbers)."""
+    H = stream.shape[1]
+    spans = bands(H, rows)
+    counts_ok = np.concatenate([heldout.segment_counts_ok(stream.rows(r0, r1)) for r0, r1 in spans])
+    T, W = stream.shape[0], stream.shape[2]
+    clock, clock_var = None, 0.0
+    if T // stats.COMMON_WINDOW >= 4 and min(int(q[-1].sum()) for q in stats._quadrants(counts_ok, H, W)) >= 4:
+        shared, se = stats.shared_variance_of(quadrant_counts(stream, counts_ok, rows, T))
+        if counts_ok.any() and shared >= 5.0 * se and shared >= 0.01 ** 2:
+            lam = np.concatenate([stream.rows(r0, r1).reshape(T, -1)[:, counts_ok[r0 * W: r1 * W]]
+                                  .mean(axis=0, dtype=np.float64) for r0, r1 in spans])
+            clock = stats.clock_of(population_signal(stream, counts_ok, rows))
+            clock_var = heldout.clock_variance(lam)
+    tests = {}
+    for k in heldout.MOTION_SEGMENTS:
+        parts = [heldout.dispersion_on_clock(stream.rows(r0, r1), k, clock, clock_var) for r0, r1 in spans]
+        tests[k] = {key: np.concatenate([p[key] for p in parts]) for key in parts[0]}
+    return heldout.motion_verdict(counts_ok, tests)
