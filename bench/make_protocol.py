@@ -141,9 +141,8 @@ def iterations_note(rows: list) -> str:
         other = sorted(c for c in counts if c != want)
         text = f"At {res} x {res}: {counts.get(want, 0)} runs at the default {want}"
         if other:
-            text += ", and " + ", ".join(f"{counts[c]} at {c}" for c in other) + (
-                " (run before the default followed the image size; shown in their own rows, never "
-                "averaged or compared with the default's)" if res == 400 and 3000 in other else "")
+            text += (", and " + ", ".join(f"{counts[c]} at {c}" for c in other)
+                     + " (shown in their own rows, never averaged or compared with the default's)")
         out.append(text + ".")
     return " ".join(out)
 

@@ -15,6 +15,8 @@ from __future__ import annotations
 
 import torch
 
+from .model import COARSE
+
 BACKGROUND = 1.0  # transparent film composited onto white (X = 1), as the dataset's ground truth
 NEAR_T = 0.05  # world rays are sampled from this distance on (rays in NDC start at their near plane: 0)
 # _skip_blocks walks the samples cell by cell only in the stretches of ray whose blocks may be occupied;
@@ -163,7 +165,6 @@ def _segment_length(field, dirs, step) -> int:
     sample's, as ``coarse_occupied`` requires (0.5 to spare for float error)."""
     if not hasattr(field, "coarse_occupied"):
         return 0
-    from .model import COARSE
     spacing = step * float(dirs.norm(dim=-1).max()) / field.voxel  # grid points between samples
     return int((COARSE - 1.5) / spacing) + 1 if spacing > 0 else 0
 
@@ -199,9 +200,8 @@ def _skip_blocks(field, origins, dirs, step, off, t_in, t_out, n_samp: int, seg:
     field._skip_probe = (field.occupancy, field.occupancy._version, full, 0)
     if full:  # little to skip: the one pass is cheaper
         return None
-    cand = cand[kept]
-    ray = torch.div(cand, n_seg, rounding_mode="floor")  # [s]: the stretches kept, sorted
-    first = cand - ray * n_seg  # each one's index along its ray
+    ray = ray[kept]  # [s]: the rays of the stretches kept, sorted
+    first = cand[kept] - ray * n_seg  # each stretch's index along its ray
     k = k0[first][:, None] + torch.arange(seg, device=dev, dtype=dt)[None, :]  # [s, seg], exact integers
     t = t_in[ray][:, None] + step * (k + off[ray][:, None])
     inside = ((t < t_out[ray][:, None]) & (k < n_samp)).view(-1)
