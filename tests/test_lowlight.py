@@ -122,3 +122,62 @@ def test_rolling_modulation_of_the_light_is_not_motion(depth, period, rows_per_c
     plain = simulate(_scene(), 256.0, Sensor(), frames=T, seed=11)
     assert abs(drift.fit_drift(s, 0, 8).travel) < 0.3
     assert drift.window_change_map(s, 0, 8).std() > 2 * drift.window_change_map(plain, 0, 8).std()
+
+
+# ---------------------------------------------------------------------- inside spikegen diagnose --reference self
+def _dim_moving_stream(travel, frames=400, seed=11):
+    """The scene at a fifth of its light (rates like the low-light recording's), moved ``travel``
+    rows over ``frames`` frames, through the ideal sensor."""
+    x = drift.expected_rates(0.2 * _scene(), travel * np.arange(frames) / (frames - 1))
+    return simulate(x, 256.0, Sensor(), frames=frames, seed=seed)
+
+
+def test_diagnose_self_reports_image_motion_instead_of_shot_noise(monkeypatch):
+    import json
+
+    from spikegen.fidelity.diagnose import diagnose
+
+    s = _dim_moving_stream(4.0)
+    d = diagnose(s, "self", 256.0)
+    motion = d.info["motion"]
+    assert motion["whole_image"] and motion["rows"]["moves"] and not motion["cols"]["moves"]
+    Tf = d.info["fit_frames"]
+    assert abs(motion["rows"]["travel"] - 4.0 * (Tf - 1) / (T - 1)) < 0.4  # measured on the fit frames
+    assert abs(motion["cols"]["travel"]) < 0.4
+    assert d.detected == []  # the ideal sensor moved with the image explains it: no effect is named
+    assert json.dumps(diagnose(s, "self", 256.0).as_json()) == json.dumps(d.as_json())  # same input, same bytes
+    # without the motion (never significant) the same stream's slow changes read as shot noise
+    monkeypatch.setattr(drift, "MOTION_MIN_TRAVEL", math.inf)
+    off = diagnose(s, "self", 256.0)
+    assert not off.info["motion"]["whole_image"]
+    assert "shot_noise" in off.detected
+
+
+def test_diagnose_self_on_a_static_scene_finds_no_motion():
+    from spikegen.fidelity.diagnose import diagnose
+
+    d = diagnose(_dim_moving_stream(0.0), "self", 256.0)
+    assert not d.info["motion"]["whole_image"] and d.info["motion"]["changed_pixels"] == 0
+    assert d.detected == []
+
+
+def test_an_object_moving_in_part_of_the_frame_is_not_a_whole_image_motion():
+    from spikegen.fidelity import bands
+
+    frames = 400
+    scene = 0.2 * _scene()
+    x = np.repeat(scene[None], frames, axis=0)
+    for t in range(frames):  # a bright bar crosses the left quarter of the frame, top to bottom
+        r = int(round(5 + 40 * t / (frames - 1)))
+        x[t, r:r + 6, : W // 4] = 0.9
+    s = simulate(x, 256.0, Sensor(), frames=frames, seed=11)
+    m = drift.image_motion(bands.Stream.of(s), 64)
+    assert not m.significant and not m.changed.any()
+    assert m.rows["blocks_agree"] < drift.MOTION_AGREE  # its rows move in one block of columns only
+    # the same bar spread over the whole width moves the whole image's profile, in every block
+    x[:, :, W // 4:] = np.repeat(scene[None, :, W // 4:], frames, axis=0)
+    for t in range(frames):
+        r = int(round(5 + 40 * t / (frames - 1)))
+        x[t, r:r + 6, :] = 0.9
+    whole = drift.image_motion(bands.Stream.of(simulate(x, 256.0, Sensor(), frames=frames, seed=11)), 64)
+    assert whole.rows["blocks_agree"] >= drift.MOTION_AGREE

@@ -59,7 +59,8 @@ def calibrate(dark_path, flats, size, prefix):
 @click.command()
 @click.argument("measured", type=click.Path(path_type=Path))
 @click.option("--reference", "ref", required=True,
-              help="Radiance the camera saw: .npy (H,W)/(K,H,W), .exr, .png (sRGB), or 'self' (static scene).")
+              help="Radiance the camera saw: .npy (H,W)/(K,H,W), .exr, .png (sRGB), or 'self' (estimated from "
+                   "the stream: a static scene, or one whose whole image moves, which is found and followed).")
 @click.option("--size", default=None, metavar="WxH", help="Frame size of a .dat stream.")
 @click.option("--intensity", type=float, default=None,
               help="Spikes per 256 frames at X = 1 (default: estimated from the data, with 'self': 256).")
@@ -152,6 +153,14 @@ def _print_summary(result) -> None:
     click.echo("held-out discrepancy (baseline -> extended):")
     for k, v in result.gain().items():
         click.echo(f"  {k}: {v['baseline']:.4g} -> {v['extended']:.4g}")
+    motion = result.info.get("motion")
+    if motion is not None:
+        if motion["whole_image"]:
+            click.echo(f"image motion (the scene, not the sensor): {motion['rows']['travel']:+.2f} rows, "
+                       f"{motion['cols']['travel']:+.2f} columns over the recording; "
+                       f"{motion['changed_pixels']} pixels it changes by > {motion['change_threshold']:.0%} not judged")
+        else:
+            click.echo("image motion: none found")
     held = result.heldout
     if held:
         click.echo(f"held-out score, nats per pixel (higher is better): ideal {held['ideal']:.4g} -> "

@@ -40,6 +40,14 @@ held-out statistics the extended sensor does not reproduce (:mod:`.unexplained`)
 "extended" and "gain" are the named discrepancy measures (stats.MEASURES) of each model on
 the held-out frames. With ``self`` only static pixels (heldout.motion_test) are judged: pixels
 tested for a change of rate that show none; "untested_pixels" had too few spikes to be tested.
+Before that, ``self`` looks for a motion of the whole image (drift.image_motion: the image's
+shift in 8 windows of frames against the same measure on interleaved frames, agreeing across
+blocks of the frame, on the fit frames); when it finds one, ``info["motion"]`` says so, the
+reference moves with the image (the motion-free image moved by the fitted shifts, in
+MOTION_SUBFRAMES sub-frames, extrapolated over the held-out frames), so that every model is
+simulated with the motion and a moving image is not read as temporal noise, and the pixels whose
+rate the motion changes by more than 10 % (beyond counting noise) are not judged. A motion is a
+property of the scene, never reported as an effect.
 
 The steps are separate modules, each returning frozen records (:mod:`.records`):
 :mod:`.ratefit` (flicker, the rate model), :mod:`.structure` (per-pixel structure),
@@ -57,7 +65,7 @@ import numpy as np
 
 from ..errors import InputError
 from ..sensor import Sensor
-from . import bands, heldout, stats
+from . import bands, drift, heldout, stats
 from .effects import gated_effects, sensor_with
 from .ratefit import constant_interval_fraction, fit_flicker, fit_rate_model, self_refractory
 from .records import ENVELOPE_SIZE, GATES, SIM_SEED, Context, Effect, Fit, RateFit, as_number  # noqa: F401
@@ -67,6 +75,7 @@ from .synth import EFFECTS
 __all__ = ["FIT_FRACTION", "SIM_SEED", "GATES", "ENVELOPE_SIZE", "Diagnosis", "Effect", "diagnose", "score_sensor"]
 
 FIT_FRACTION = 0.8
+MOTION_SUBFRAMES = 16  # sub-frames of the 'self' reference when the whole image moves
 
 
 @dataclass
@@ -131,6 +140,8 @@ def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | 
             "intensity": ctx.intensity, "reference": "self" if ctx.self_ref else f"{ctx.X.shape[0]} sub-frame(s)",
             "baseline_sensor": baseline.name, "static_pixels": n_static,
             "moving_pixels": H * W - n_static - ctx.untested, "untested_pixels": ctx.untested}
+    if ctx.motion is not None:
+        info["motion"] = ctx.motion.as_json()
     return Diagnosis(effects, extended, bm, em, fit=fit, info=info, heldout=held["doc"],
                      unexplained=held["unexplained"], static=ctx.static.reshape(H, W))
 
@@ -213,7 +224,15 @@ def _context(spikes: bands.Stream, radiance, intensity: float, baseline: Sensor,
     half = Tf // 2
     halves = (bands.window_rate(spikes, rows, 0, half), bands.window_rate(spikes, rows, half, Tf))
     self_ref = isinstance(radiance, str)
-    if self_ref:
+    motion = drift.image_motion(spikes, rows, Tf) if self_ref else None
+    if self_ref and motion.significant:
+        # the scene moves as a whole: the reference moves with it (MOTION_SUBFRAMES sub-frames over
+        # the recording, the fitted shifts extrapolated over the held-out frames)
+        # (each pixel scaled to its exact fit-window rate)
+        rate = meas.rate.reshape(H, W)
+        X = np.concatenate([_self_radiance(motion.rates_at((k + 0.5) * T / MOTION_SUBFRAMES, rate), intensity,
+                                           baseline, H, W) for k in range(MOTION_SUBFRAMES)])
+    elif self_ref:
         X = _self_radiance(meas.rate, intensity, baseline, H, W)
     else:
         X = np.asarray(radiance, dtype=np.float64)
@@ -222,8 +241,10 @@ def _context(spikes: bands.Stream, radiance, intensity: float, baseline: Sensor,
             raise InputError(f"reference radiance is {X.shape[-1]}x{X.shape[-2]}, the stream is {W}x{H}")
     Rb, db = baseline.maps(H, W)
     static, tested = bands.motion_test(spikes, rows) if self_ref else (np.ones(H * W, dtype=bool),) * 2
+    if motion is not None and motion.significant:
+        static = static & ~motion.changed  # the pixels the image's motion changes are not judged
     return Context(spikes, X, intensity, baseline, Tf, meas, halves, self_ref, Rb.reshape(-1), db.reshape(-1),
-                   constant_interval_fraction(meas), static, int((~tested).sum()), rows)
+                   constant_interval_fraction(meas), static, int((~tested).sum()), rows, motion)
 
 
 def _self_radiance(rate, intensity, baseline, H, W):

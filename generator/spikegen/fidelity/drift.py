@@ -13,6 +13,9 @@ reads as a low N_e (docs/lowlight.md). Here:
 - :func:`detrended_intervals`: each pixel's interval variance about a polynomial in time fitted
   to its own intervals, so that a slow change of its rate is left out.
 - :func:`window_change_map`: each row's (column's) rate in windows relative to its mean.
+- :func:`image_motion`: the same shift measured band by band on a bands.Stream, with its noise
+  floor from interleaved frames and a check that blocks of the frame move alike, for
+  ``spikegen diagnose --reference self`` (a whole-image motion moves its reference).
 """
 from __future__ import annotations
 
@@ -170,3 +173,163 @@ def detrended_intervals(spikes: np.ndarray, degree: int = 2) -> tuple[np.ndarray
         corr = (s[2] / m - ma * mc) / np.sqrt(va * vc)
     corr = np.where((m >= 4) & (va > 1e-12) & (vc > 1e-12), corr, np.nan)
     return var, corr, n
+
+
+# ---------------------------------------------------------------------- inside spikegen diagnose
+MOTION_WINDOWS = 8  # windows of frames the image's shift is measured in
+MOTION_BLOCKS = 4  # column (row) blocks whose row (column) shifts must agree for a whole-image motion
+MOTION_Z = 5.0  # travel over its standard error from the interleaved windows
+MOTION_MIN_TRAVEL = 0.5  # pixels: a smaller travel is not reported
+MOTION_AGREE = 0.75  # fraction of blocks whose travel is within half the whole image's
+MOTION_CHANGE = 0.10  # a pixel whose expected rate the motion changes by more than this is not judged
+MOTION_NOISE = 3.0  # ... and by more than this many times the counting noise of the prediction
+
+
+@dataclass(frozen=True)
+class ImageMotion:
+    """A motion of the whole image found in a recording (spikegen diagnose, ``--reference self``).
+
+    rows / cols: the fitted travel along each axis (pixels, first to last frame measured) with its standard
+    error, the window shifts and the fraction of blocks that agree; significant: a whole-image
+    motion on either axis; changed: ``[P]`` bool, pixels whose expected rate the fitted motion
+    changes by more than MOTION_CHANGE of their mean, beyond its counting noise (all False when
+    not significant); ``frames``: the frames the motion was measured on (the first ones)."""
+
+    rows: dict
+    cols: dict
+    significant: bool
+    changed: np.ndarray
+    still: np.ndarray | None = None  # [H, W] mean rate without the motion (at the mean image's position)
+    coef: tuple = (np.zeros(3), np.zeros(3))  # quadratics d(t) of the rows' and columns' shifts (0 if none)
+    frames: int = 0  # the frames it was measured on (the first ones)
+    fit_mean: np.ndarray | None = None  # [H, W] the prediction's mean over those frames' windows
+
+    def rates_at(self, t: float, rate: np.ndarray | None = None) -> np.ndarray:
+        """``[H, W]`` each pixel's expected rate at frame ``t`` under the fitted motion (``still``
+        moved by the fitted shifts; the quadratics extrapolate past the frames they were fitted
+        on); with ``rate [H, W]`` (a more exact mean rate of the same frames), scaled pixel by
+        pixel so that its mean over the measured windows is ``rate`` (``rate`` itself where the
+        prediction is 0)."""
+        dr, dc = (float(np.polynomial.polynomial.polyval(t, c)) for c in self.coef)
+        moved = shift_image(self.still, dr, dc)
+        if rate is None:
+            return moved
+        ok = self.fit_mean > 0
+        return np.where(ok, moved * rate / np.where(ok, self.fit_mean, 1.0), rate)
+
+    def as_json(self) -> dict:
+        return {"rows": self.rows, "cols": self.cols, "whole_image": bool(self.significant),
+                "changed_pixels": int(self.changed.sum()), "change_threshold": MOTION_CHANGE, "noise_threshold": MOTION_NOISE,
+                "frames_measured": self.frames, "windows": MOTION_WINDOWS, "z_threshold": MOTION_Z, "min_travel": MOTION_MIN_TRAVEL}
+
+
+def window_images(stream, rows: int, windows: int = MOTION_WINDOWS, frames: int | None = None
+                  ) -> tuple[np.ndarray, np.ndarray]:
+    """``(consecutive, interleaved)``, each ``float64 [windows, H, W]``: the mean rate in each of
+    ``windows`` equal windows of the first ``frames`` frames (default all) of ``stream`` (a
+    bands.Stream, read a band of ``rows`` rows at a time), and in ``windows`` interleaved sets of frames (set ``k``: frames ``t = k
+    (mod windows)``), each spanning the whole recording, so that a motion averages out while the
+    counting noise stays the same. One pass over the stream."""
+    from .bands import bands
+
+    T, H, W = stream.shape
+    L = (T if frames is None else min(int(frames), T)) // windows
+    seq = np.empty((windows, H, W), dtype=np.float64)
+    inter = np.empty((windows, H, W), dtype=np.float64)
+    for r0, r1 in bands(H, rows):
+        band = stream.rows(r0, r1, 0, windows * L)
+        seq[:, r0:r1] = band.reshape(windows, L, r1 - r0, W).sum(axis=1, dtype=np.int64) / L
+        inter[:, r0:r1] = band.reshape(L, windows, r1 - r0, W).sum(axis=0, dtype=np.int64) / L
+    return seq, inter
+
+
+def _axis_shifts(images: np.ndarray, axis: int, blocks: int, max_shift: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(shifts [windows], block_shifts [blocks, windows])`` of ``images [windows, H, W]`` along
+    ``axis``: each window's profile (mean over the other axis, over all of it and over each of
+    ``blocks`` equal blocks of it) against the mean over the windows (:func:`profile_shift`)."""
+    other = 2 if axis == 0 else 1
+    n_other = images.shape[other]
+    edges = np.linspace(0, n_other, blocks + 1).astype(int)
+
+    def shifts(sl):
+        prof = images[:, :, sl].mean(axis=2) if axis == 0 else images[:, sl, :].mean(axis=1)
+        ref = prof.mean(axis=0)
+        return np.array([profile_shift(p, ref, max_shift) for p in prof])
+
+    whole = shifts(slice(0, n_other))
+    per_block = np.stack([shifts(slice(a, b)) for a, b in zip(edges[:-1], edges[1:])])
+    return whole, per_block
+
+
+def _travel_weights(centres: np.ndarray, frames: int) -> np.ndarray:
+    """``w`` with ``travel = w @ shifts`` for the quadratic through the window shifts (fit_drift)."""
+    V = np.polynomial.polynomial.polyvander(centres, 2)
+    return np.linalg.pinv(V).T @ np.array([0.0, frames - 1.0, (frames - 1.0) ** 2])
+
+
+def shift_image(img: np.ndarray, dr: float, dc: float) -> np.ndarray:
+    """``img(r - dr, c - dc)`` for ``img [H, W]``, linear along each axis, edges held."""
+    out = _shift_rows(img, dr)
+    return _shift_rows(out.T, dc).T
+
+
+def image_motion(stream, rows: int, frames: int | None = None, windows: int = MOTION_WINDOWS,
+                 blocks: int = MOTION_BLOCKS, max_shift: float = 10.0) -> ImageMotion:
+    """Whether the whole image of ``stream`` (a bands.Stream; its first ``frames`` frames, default
+    all) moves, and which pixels it changes.
+
+    Along each axis: the shift of each of ``windows`` consecutive windows of frames (the profile
+    of its mean image against the mean over the windows), a quadratic in time through them and its
+    travel; the standard error of the travel from the same measurement on interleaved windows
+    (frames ``t = k mod windows``), which have the recording's counting noise but no motion (at
+    least the 0.05-pixel step of the shift grid). An axis moves when ``|travel| >= MOTION_Z`` SE
+    and ``>= MOTION_MIN_TRAVEL``, and at least MOTION_AGREE of ``blocks`` blocks across the other
+    axis move alike (travel within half the whole image's): an object moving in one part of the
+    frame is a local motion, left to heldout.motion_test. With a whole-image motion, each pixel's
+    rate in window k is predicted by the motion-free mean image (each window's image moved back
+    by its fitted shift, averaged) moved by the fitted shift; pixels whose prediction varies over
+    the windows by more than MOTION_CHANGE of its mean, and by more than MOTION_NOISE times the
+    counting noise of that prediction (``sqrt(2 v rate / windows)``, ``v`` the windows' scatter
+    about the prediction per unit rate, pooled over the pixels), are
+    ``changed``: where the noise hides the change, the pixel's own tests (heldout.motion_test)
+    decide."""
+    T, H, W = stream.shape
+    T = T if frames is None else min(int(frames), T)
+    L = T // windows
+    if windows < 3 or L < 2 or min(H, W) <= 2 * (int(np.ceil(max_shift)) + 2) + 2:
+        nothing = {"travel": 0.0, "se": None, "shifts": [], "blocks_agree": None, "moves": False}
+        return ImageMotion(nothing, dict(nothing), False, np.zeros(H * W, dtype=bool), frames=T)
+    seq, inter = window_images(stream, rows, windows, T)
+    centres = (np.arange(windows) + 0.5) * L - 0.5
+    w = _travel_weights(centres, T)
+    fitted, coefs, axes = [], [], {}
+    for axis, name in ((0, "rows"), (1, "cols")):
+        whole, per_block = _axis_shifts(seq, axis, blocks, max_shift)
+        null, _ = _axis_shifts(inter, axis, blocks, max_shift)
+        sd = max(float(np.sqrt(np.mean((null - null.mean()) ** 2) * windows / (windows - 1))), 0.05 / np.sqrt(12.0))
+        se = sd * float(np.linalg.norm(w))
+        travel = float(w @ whole) + 0.0
+        block_travel = per_block @ w
+        agree = float(np.mean(np.abs(block_travel - travel) <= 0.5 * abs(travel))) if travel != 0 else 0.0
+        moves = abs(travel) >= max(MOTION_Z * se, MOTION_MIN_TRAVEL) and agree >= MOTION_AGREE
+        coef = np.polynomial.polynomial.polyfit(centres, whole, 2)
+        coef = coef if moves else np.zeros(3)
+        coefs.append(coef)
+        fitted.append(np.polynomial.polynomial.polyval(centres, coef))
+        axes[name] = {"travel": round(travel, 4), "se": round(se, 4), "shifts": [round(float(s), 3) for s in whole],
+                      "blocks_agree": round(agree, 3), "moves": bool(moves)}
+    significant = axes["rows"]["moves"] or axes["cols"]["moves"]
+    changed = np.zeros(H * W, dtype=bool)
+    if significant:
+        dr, dc = fitted
+        still = np.mean([shift_image(seq[k], -dr[k], -dc[k]) for k in range(windows)], axis=0)
+        pred = np.stack([shift_image(still, dr[k], dc[k]) for k in range(windows)])
+        mean = pred.mean(axis=0)
+        spread = np.abs(pred - mean).max(axis=0)
+        # counting noise of the prediction: the windows' scatter about it per unit rate, pooled
+        # over the pixels (a regular pixel counts far below Poisson), for a mean of the windows
+        per_rate = float(((seq - pred) ** 2).sum() / ((windows - 1) * max(mean.sum(), 1e-12)))
+        noise = np.sqrt(2.0 * per_rate * np.maximum(mean, 0.0) / windows)
+        changed = ((spread > MOTION_CHANGE * np.maximum(mean, 1e-12)) & (spread > MOTION_NOISE * noise)).reshape(-1)
+        return ImageMotion(axes["rows"], axes["cols"], True, changed, still, tuple(coefs), T, mean)
+    return ImageMotion(axes["rows"], axes["cols"], False, changed, frames=T)

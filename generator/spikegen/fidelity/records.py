@@ -114,6 +114,7 @@ class Context:
     static: np.ndarray | None = None  # [P] bool, pixels whose rate does not change (all with a reference)
     untested: int = 0  # pixels with too few spikes to be tested for a change of rate ('self' only)
     rows: int = 8  # rows of the bands the streams are read and simulated in (bands.band_rows)
+    motion: object = None  # drift.ImageMotion of the whole image ('self' only)
 
     @property
     def shape(self) -> tuple:

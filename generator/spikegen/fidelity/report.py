@@ -133,10 +133,25 @@ def markdown(result, figures=()) -> str:
               "| measure | baseline | extended | meaning |", "|---|---|---|---|"]
     for k, v in result.gain().items():
         lines.append(f"| {k} | {v['baseline']:.4g} | {v['extended']:.4g} | {stats.MEASURES[k]} |")
-    lines += _heldout_lines(result)
+    lines += _motion_lines(result) + _heldout_lines(result)
     for name, caption in figures:
         lines += [f"![{caption}]({name})", "", caption, ""]
     return "\n".join(lines)
+
+
+def _motion_lines(result) -> list:
+    """With ``self``: whether the whole image moved (a property of the scene, not an effect)."""
+    motion = result.info.get("motion")
+    if motion is None:
+        return []
+    if not motion["whole_image"]:
+        return ["", "## Image motion", "", "No motion of the whole image found (drift.image_motion).", ""]
+    r, c = motion["rows"], motion["cols"]
+    return ["", "## Image motion", "",
+            f"The whole image moves (the scene or the camera, not the sensor): {r['travel']:+.2f} rows "
+            f"(SE {r['se']:.2g}) and {c['travel']:+.2f} columns (SE {c['se']:.2g}) from the first frame to the "
+            f"last. The {motion['changed_pixels']} pixels whose rate it changes by more than "
+            f"{motion['change_threshold']:.0%} are not judged.", ""]
 
 
 def _heldout_lines(result) -> list:
