@@ -1,13 +1,15 @@
 """Pose accuracy of ``spikegen import`` on a capture whose true poses are known.
 
     python bench/bench_import.py CAPTURE --size WxH --truth TRUTH.json --work DIR
-        [--recon tfi --recon tfp] [--frames N] [--calibration PREFIX] [--plot PNG] [--view PNG]
+        [--recon tfi --recon tfp] [--frames N] [--calibration PREFIX] [--camera-model simple-radial]
+        [--plot PNG] [--view PNG]
         [--train ITERS [--resolution W] [--heldout PNG] [--perturb DEG] [--reuse-runs]]
 
 CAPTURE: a folder of spike files named ``r_<i>.dat`` (a dataset's ``train/`` folder, e.g. one
 made by ``spikegen render --rig handheld``); TRUTH: the ``render.json`` of that render or a
 NeRF-synthetic ``transforms_train.json`` (view i is its i-th train entry). The import never reads
-TRUTH. For each ``--recon`` the capture is imported into ``DIR/<recon>`` and the recovered poses
+TRUTH. For each ``--recon`` the capture is imported into ``DIR/<recon>`` (``DIR/<recon>_simple-radial``
+with ``--camera-model simple-radial``) and the recovered poses
 are compared with the true ones after two similarity alignments (``spikegen.importer.pose_errors``),
 both printed:
 
@@ -20,7 +22,7 @@ both printed:
 Prints per method and alignment: views registered, median and 90th-percentile rotation error
 (degrees) and camera-centre error (% of the rig's extent: the largest distance between two true
 camera centres); and the median rotation error after aligning the orientations alone (``rot*``),
-the focal length found, and the import's wall time. ``--plot``: the recovered camera centres
+the focal length and radial coefficient k1 found (0 for the pinhole model), and the import's wall time. ``--plot``: the recovered camera centres
 (after both alignments) against the true ones, seen from above and from the side, for the first
 method; ``--view``: a copy of that method's image (PNG) of the first registered view.
 
@@ -62,17 +64,18 @@ def true_poses(path: Path) -> np.ndarray:
 
 
 def measure(args, recon: str) -> dict:
-    out = Path(args.work) / recon
+    out = Path(args.work) / (recon if args.camera_model == "simple-pinhole" else f"{recon}_{args.camera_model}")
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
-    import_capture(args.capture, parse_size(args.size), out, args.calibration, args.frames, recon, progress=False)
+    import_capture(args.capture, parse_size(args.size), out, args.calibration, args.frames, recon, progress=False,
+                   camera_model=args.camera_model)
     wall_s = time.perf_counter() - t0
     doc = json.loads((out / "transforms_train.json").read_text())
     index = [int(Path(f["source_file"]).stem.split("_")[-1]) for f in doc["frames"]]
     truth = true_poses(Path(args.truth))[index]
     est = np.array([f["transform_matrix"] for f in doc["frames"]])
     row = {"recon": recon, "registered": len(index), "views": len(index) + len(doc["unregistered"]),
-           "wall_s": wall_s, "fl_x": doc["fl_x"], "est": est, "truth": truth, "out": out,
+           "wall_s": wall_s, "fl_x": doc["fl_x"], "k1": doc.get("k1", 0.0), "est": est, "truth": truth, "out": out,
            "first": doc["frames"][0]["file_path"]}
     row.update(summarise(pose_errors(est, truth, scene_depth(truth))))
     return row
@@ -226,7 +229,7 @@ def report_training(row: dict, metrics: dict) -> None:
 
 def report(rows: list[dict]) -> None:
     print(f"{'recon':6} {'align':9} {'registered':>12} {'rot med':>9} {'rot p90':>9} {'ctr med %':>10} "
-          f"{'ctr p90 %':>10} {'rot*':>6} {'fl_x px':>8} {'wall s':>7}  targets (>= 90 %, <= 0.5 deg, <= 1 %)")
+          f"{'ctr p90 %':>10} {'rot*':>6} {'fl_x px':>8} {'k1':>7} {'wall s':>7}  targets (>= 90 %, <= 0.5 deg, <= 1 %)")
     for r in rows:
         frac = r["registered"] / r["views"]
         for name, label in (("ctr", "centres"), ("full", "full pose")):
@@ -235,7 +238,7 @@ def report(rows: list[dict]) -> None:
                    a["ctr_med"] <= TARGETS["centre_pct"])
             print(f"{r['recon']:6} {label:9} {r['registered']:>5}/{r['views']:<3} {100 * frac:3.0f}% "
                   f"{a['rot_med']:9.3f} {a['rot_p90']:9.3f} {a['ctr_med']:10.3f} {a['ctr_p90']:10.3f} "
-                  f"{r['rot_orient_med']:6.3f} {r['fl_x']:8.1f} {r['wall_s']:7.1f}  "
+                  f"{r['rot_orient_med']:6.3f} {r['fl_x']:8.1f} {r['k1']:7.4f} {r['wall_s']:7.1f}  "
                   f"{' '.join('met' if m else 'MISSED' for m in met)}")
 
 
@@ -275,6 +278,8 @@ def main() -> None:
     ap.add_argument("--recon", action="append", choices=["tfi", "tfp"])
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--calibration", default=None)
+    ap.add_argument("--camera-model", default="simple-pinhole", choices=["simple-pinhole", "simple-radial"],
+                    help="spikegen import --camera-model (the k1 column: the radial coefficient SfM found)")
     ap.add_argument("--plot", default=None)
     ap.add_argument("--view", default=None)
     ap.add_argument("--train", type=int, default=0, help="Also train ITERS iterations from imported and true poses.")

@@ -34,7 +34,7 @@ from spikegen import importer as im
 
 def options(pycolmap, changes: set, size: tuple[int, int]):
     ex, ma, ve, mp = im._sfm_options(pycolmap)
-    reader = pycolmap.ImageReaderOptions(camera_model=im.CAMERA_MODEL)
+    reader = pycolmap.ImageReaderOptions(camera_model=im.CAMERA_MODELS[im.DEFAULT_CAMERA_MODEL])
     for c in sorted(changes, key=lambda c: not c.startswith("reproj")):  # reprojX first, then filtX
         if c.startswith("reproj"):
             r = float(c[6:])

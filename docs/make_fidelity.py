@@ -226,7 +226,9 @@ def study_joint(real, md, results):
     """The held-out score (diagnose.score_sensor, `self`) of the car's static background and of
     the low-light recording under shot noise of each N_e: each recording's own fit, the other's,
     and the N_e best on both (the largest sum of the two scores, nats per pixel, over the grid);
-    then how the interval noise depends on the rate, measured and under the low-light fit."""
+    then how the interval noise depends on the rate, measured and under shot noise of the low-light
+    fit's N_e, or of the car's where the low-light diagnosis names no shot noise (a simulation with
+    N_e = inf is the ideal sensor, whose excess over itself is zero by construction)."""
     from spikegen.fidelity.diagnose import score_sensor
 
     data = {label: read_spikes(real / name) for label, name, _ in JOINT_RECORDINGS}
@@ -252,7 +254,7 @@ def study_joint(real, md, results):
            table(rows, ["recording", "own fit N_e", "score, own N_e", "score, the other's N_e",
                         f"score, shared N_e = {_ne(shared)}", "best N_e of the grid (score)"]), "",
            table(grid_rows, ["N_e", *[f"{label} score" for label in data], "sum"]), ""]
-    md += _rate_dependence(data, own[low])
+    md += _rate_dependence(data, own[low] if math.isfinite(own[low]) else own[car])
     loss = {label: scores[label][own[label]] - scores[label][own[other]] for label, other in ((car, low), (low, car))}
     md += [f"Under the other's N_e rather than its own, the car scores {_change(-loss[car])} and the low light "
            f"{_change(-loss[low])} nats per pixel. Shot noise, threshold jitter and dark-current shot noise (the dark "
@@ -277,7 +279,7 @@ def _rate_dependence(data, electrons, bins=5):
     median lag-1 correlation of consecutive intervals and the mean per-pixel 1 / N_e equivalent
     ``(excess variance measured - ideal simulation) x lambda^2`` (stats.excess_interval_var; shot
     noise and threshold jitter both make it the same at every rate), measured and simulated with
-    shot noise of ``electrons`` (the low-light fit)."""
+    shot noise of ``electrons``."""
     from spikegen.fidelity.heldout import static_pixels
 
     rows = []

@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 from spikegen.cli import main
-from spikegen.fidelity import synth
+from spikegen.fidelity import stats, synth
 from spikegen.fidelity.diagnose import diagnose
 from spikegen.sensorfile import load_sensor
 from spikegen.spikeio import write_spikes
@@ -295,6 +295,21 @@ def test_report_reads_the_records(tmp_path, monkeypatch):
     assert "residual_map.png" not in [n for n, _ in report._plots(no_map, np.zeros((100, 4, 5), np.uint8),
                                                                     radiance, tmp_path)]
     assert "rates.png" not in [n for n, _ in report._plots(result, np.zeros((100, 4, 5), np.uint8), "self", tmp_path)]
+
+
+def test_report_sums_the_fit_frames_band_by_band(monkeypatch):
+    from spikegen.fidelity import bands, report
+
+    rng = np.random.default_rng(3)
+    s = (rng.random((300, 24, 16)) < 0.5 * rng.random((24, 16))).astype(np.uint8)
+    packed = np.packbits(s, axis=-1, bitorder="little")
+    monkeypatch.setattr(bands, "BAND_BYTES", 200 * 16 * 8)  # bands of 8 rows: three of them
+    assert bands.band_rows(200, 24, 16) == 8
+    signal, histogram = report._fit_frame_sums(bands.Stream(s.shape, packed=packed), 200)
+    assert np.array_equal(signal, s[:200].reshape(200, -1).sum(axis=1))  # the whole stream's, from packed bands
+    v = stats.pixel_stats(s[:200]).isi_values
+    assert histogram.sum() == (v <= report.ISI_MAX).sum() > 1000
+    assert np.array_equal(histogram, np.bincount(v[v <= report.ISI_MAX].astype(int), minlength=report.ISI_MAX + 1))
 
 
 # ---------------------------------------------------------------------- held-out choice, joint effects, unexplained

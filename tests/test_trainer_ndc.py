@@ -306,3 +306,37 @@ def test_auto_is_the_default_ndc_for_a_forward_capture_the_cube_for_an_object_on
     train(_cfg(capture, iters=4, space="auto"), tmp_path / "cube", progress=False, log=msgs.append)
     ck = torch.load(tmp_path / "cube" / "checkpoint.pt", weights_only=False)
     assert any("resuming" in m for m in msgs) and ck["iteration"] == 4 and "space" not in ck
+
+
+@pytest.mark.parametrize("k1", [0.2, -0.1])
+def test_the_grid_box_holds_every_pixel_ray_through_a_radial_lens(capture, tmp_path, monkeypatch, k1):
+    from spikenerf.render import pixel_rays
+
+    def lens(doc):
+        doc.update(camera_model="OPENCV", k1=k1)
+
+    ds = load_dataset(_edit(capture, tmp_path, lens))
+    space, why = ndc.for_dataset(ds)
+    assert space is not None, why
+    lo, hi = np.array(space.box[0][:2]), np.array(space.box[1][:2])
+    h, w = ds.height, ds.width
+    cam = ds.camera(h, w)
+    assert cam[4] == k1
+    pix = torch.arange(h * w)
+    outside_corners = 0
+    corner_space = None
+    if k1 > 0:  # the box the lens's four corner rays alone give: too small, a pincushion bends the edges out
+        with monkeypatch.context() as mp:
+            mp.setattr(ndc, "EDGE_POINTS", 2)  # each edge's two ends: the corners
+            corner_space = ndc.for_dataset(ds)[0]
+    for v in ds.splits["train"]:
+        pose = torch.as_tensor(v.pose, dtype=torch.float64)
+        o, d = pixel_rays(pose.expand(h * w, 4, 4), pix, h, w, cam)
+        o_ndc, d_ndc, length = space.rays(o, d)
+        ends = torch.cat([o_ndc, o_ndc + length[:, None] * d_ndc]).numpy()[:, :2]
+        assert (ends >= lo - 1e-9).all() and (ends <= hi + 1e-9).all()
+        if corner_space is not None:
+            clo, chi = np.array(corner_space.box[0][:2]), np.array(corner_space.box[1][:2])
+            outside_corners += int(((ends < clo - 1e-9) | (ends > chi + 1e-9)).any(axis=1).sum())
+    if k1 > 0:
+        assert outside_corners > 0

@@ -66,12 +66,14 @@ def _size(value):
 @click.option("--seed", type=int, default=0, show_default=True, help="Seed of every random draw.")
 @click.option("--workers", type=int, default=1, show_default=True, help="Local worker processes.")
 @click.option("--scheduler", default=None, help="Dask scheduler address (tcp://host:8786) to run views on.")
-def convert(source, intensities, out_dir, sensor, frames, resolution, seed, workers, scheduler):
+@click.option("--lens-k1", type=float, default=0.0, show_default=True,
+              help="Image the views through a radial lens of this k1 > 0 (COLMAP SIMPLE_RADIAL; 0: pinhole).")
+def convert(source, intensities, out_dir, sensor, frames, resolution, seed, workers, scheduler, lens_k1):
     """Turn a render folder or a NeRF-synthetic folder into spike datasets (never renders)."""
     from .dataset import convert as run
 
     folders = run(source, out_dir, intensities, sensor=sensor, frames=frames, seed=seed, resolution=resolution,
-                  workers=workers, scheduler=scheduler, progress=True)
+                  workers=workers, scheduler=scheduler, progress=True, lens_k1=lens_k1)
     for f in folders:
         click.echo(str(f))
 
@@ -101,12 +103,15 @@ def verify(dataset):
               "shortest file's].")
 @click.option("--recon", "reconstruction", type=click.Choice(["tfp", "tfi"]), default="tfp", show_default=True,
               help="Image per view: TFP over the whole stream, or TFI at the middle frame (docs/real_captures.md).")
-def import_(capture, size, out_dir, calibration, frames, reconstruction):
+@click.option("--camera-model", type=click.Choice(["simple-pinhole", "simple-radial"]), default="simple-pinhole",
+              show_default=True, help="COLMAP camera: one focal length, and with simple-radial a radial lens k1.")
+def import_(capture, size, out_dir, calibration, frames, reconstruction, camera_model):
     """A folder of real spike recordings, one file per viewpoint, as a dataset folder with poses and
     intrinsics from structure from motion (pycolmap)."""
     from .importer import import_capture
 
-    click.echo(str(import_capture(capture, _size(size), out_dir, calibration, frames, reconstruction)))
+    click.echo(str(import_capture(capture, _size(size), out_dir, calibration, frames, reconstruction,
+                                  camera_model=camera_model)))
 
 
 # ---------------------------------------------------------------------- info / preview

@@ -27,8 +27,9 @@ import numpy as np
 
 from . import __version__
 from .errors import InputError, OutputError
-from .formats import (SPLITS, ConvertParams, ConvertTask, FileEntry, LevelOutput, Manifest, RenderDoc, Transforms,
-                      ViewRecord, check_intensity, intensity_label, read_json, spikecv_config)
+from .formats import (SPLITS, ConvertParams, ConvertTask, FileEntry, Intrinsics, LevelOutput, Manifest, RenderDoc,
+                      Transforms, ViewRecord, check_intensity, intensity_label, read_json, spikecv_config)
+from .lens import lens_problem, warp_to_lens
 from .parallel import connect, run_tasks
 from .presets import get_sensor
 from .seeding import view_seed
@@ -141,8 +142,22 @@ def _resize(plane: np.ndarray, size: int) -> np.ndarray:
     return np.asarray(im.resize((size, size), Image.Resampling.BOX), dtype=np.float32)
 
 
-def _load_view(src_kind: str, view: ViewRecord, resolution: int | None):
-    """(radiance [K, H, W] float32, ground-truth RGBA uint8 [H, W, 4] or None = copy the PNG)."""
+def _load_view(src_kind: str, view: ViewRecord, resolution: int | None, lens: Intrinsics | None = None):
+    """(radiance [K, H, W] float32, ground-truth RGBA uint8 [H, W, 4] or None = copy the PNG).
+
+    With ``lens``, both are warped through it after any resize (:func:`spikegen.lens.warp_to_lens`):
+    what the same camera with that radial lens images."""
+    x, gt = _load_pinhole_view(src_kind, view, resolution)
+    if lens is None:
+        return x, gt
+    k = (lens.k1, lens.fl_x, lens.fl_y, lens.cx, lens.cy)
+    rgba = read_png(view.png) * 255.0 if gt is None else gt  # the PNG's 8-bit values, warped as they are
+    gt = warp_to_lens(np.moveaxis(np.asarray(rgba, np.float32), -1, 0), *k)
+    gt = np.clip(np.round(np.moveaxis(gt, 0, -1)), 0, 255).astype(np.uint8)
+    return warp_to_lens(x, *k), gt
+
+
+def _load_pinhole_view(src_kind: str, view: ViewRecord, resolution: int | None):
     if src_kind == "nerf":
         rgba = read_png(view.png)
         if rgba.shape[2] not in (3, 4):
@@ -183,7 +198,7 @@ def convert_view(task: ConvertTask, sensor: Sensor) -> list[str]:
     view = task.view
     due = [lv for lv in task.levels if not _is_done(task, lv)]
     if due:
-        x, gt = _load_view(task.source_kind, view, task.resolution)
+        x, gt = _load_view(task.source_kind, view, task.resolution, task.lens)
     for lv in due:
         seed = view_seed(task.seed, task.name, view.split, view.index, lv.intensity)
         spikes = simulate(x, lv.intensity, sensor, frames=task.frames, seed=seed, threads=task.threads)
@@ -225,9 +240,12 @@ def _recorded(out: Path) -> dict:
 # ---------------------------------------------------------------------- whole dataset
 def convert(source, out_dir, intensities, sensor="paper", frames: int = 256, seed: int = 0,
             resolution: int | None = None, workers: int = 1, scheduler: str | None = None,
-            progress: bool = True, stop=None) -> list[Path]:
+            progress: bool = True, stop=None, lens_k1: float = 0.0) -> list[Path]:
     """Write ``out_dir/<name>_i<I>/`` for each intensity; returns the folders.
 
+    ``lens_k1`` > 0: every view is warped through a radial lens of that ``k1`` (spikegen.lens; the
+    renderer's camera otherwise) before the sensor sees it, and the transforms carry the intrinsics
+    with ``k1``. A barrel lens (``k1 < 0``) would need pixels beyond the rendered image: refused.
     One pass over the source: every view is read once and simulated at every intensity.
     ``stop``: a callable checked between views (in-process runs); when it returns True the
     conversion stops with an :class:`OutputError`, finished views kept, and a rerun finishes it."""
@@ -236,6 +254,7 @@ def convert(source, out_dir, intensities, sensor="paper", frames: int = 256, see
     if not levels:
         raise InputError("give at least one --intensity")
     width, height = _output_size(src, frames, resolution)
+    lens = _lens(src, width, height, lens_k1)
     sensor_obj = sensor if isinstance(sensor, Sensor) else get_sensor(sensor, height, width, seed)
     sensor_obj = sensor_obj.sized(height, width)
     sensor_name = sensor if isinstance(sensor, str) else sensor_obj.name
@@ -243,17 +262,17 @@ def convert(source, out_dir, intensities, sensor="paper", frames: int = 256, see
         raise InputError(f"--workers must be a positive integer, got {workers}")
     client = connect(scheduler) if isinstance(scheduler, str) else scheduler  # fail before writing anything
     base = ConvertParams(src.root.resolve().name, src.kind, src.name, 0.0, sensor_name, int(frames), src.subframes,
-                         width, height, int(seed), render=src.info)
+                         width, height, int(seed), render=src.info, lens_k1=lens.k1 if lens else 0.0)
     params = [replace(base, intensity=level) for level in levels]
     outs = [Path(out_dir) / f"{src.name}_i{intensity_label(p.intensity)}" for p in params]
     try:
         for out, p in zip(outs, params):
             _claim(out, p)
-        tasks = _tasks(src, outs, params, resolution, workers == 1 and client is None)
+        tasks = _tasks(src, outs, params, resolution, workers == 1 and client is None, lens)
         run_tasks(convert_view, tasks, workers=workers, scheduler=client, progress=progress,
                   desc=f"{src.name} x{len(levels)} intensities", shared={"sensor": sensor_obj}, stop=stop)
         for out, p in zip(outs, params):
-            _finish(out, src, p, sensor_obj)
+            _finish(out, src, p, sensor_obj, lens)
     finally:
         if client is not None and isinstance(scheduler, str):
             client.close()
@@ -271,7 +290,23 @@ def _output_size(src: Source, frames, resolution) -> tuple[int, int]:
     return width, height
 
 
-def _tasks(src: Source, outs, params, resolution, in_process: bool) -> list[ConvertTask]:
+def _lens(src: Source, width: int, height: int, k1) -> Intrinsics | None:
+    """The renderer's camera at the output size with the radial lens ``k1`` (None for 0: pinhole)."""
+    if isinstance(k1, bool) or not isinstance(k1, (int, float)) or not math.isfinite(k1):
+        raise InputError(f"--lens-k1 must be a number, got {k1!r}")
+    if k1 == 0:
+        return None
+    if k1 < 0:
+        raise InputError(f"--lens-k1 {k1:g}: a barrel lens (k1 < 0) images more than the rendered pinhole view "
+                         "holds; only k1 > 0 (pincushion) can be made from it")
+    lens = Intrinsics.centred(width, height, src.camera_angle_x, float(k1))
+    problem = lens_problem(lens.k1, width, height, lens.fl_x, lens.fl_y, lens.cx, lens.cy)
+    if problem:
+        raise InputError(f"--lens-k1: {problem}")
+    return lens
+
+
+def _tasks(src: Source, outs, params, resolution, in_process: bool, lens: Intrinsics | None = None) -> list[ConvertTask]:
     recorded = [_recorded(out) for out in outs]
     p0 = params[0]
     tasks = []
@@ -280,7 +315,8 @@ def _tasks(src: Source, outs, params, resolution, in_process: bool) -> list[Conv
         levels = tuple(LevelOutput(out, p.intensity, {k: rec[k] for k in names if k in rec})
                        for out, p, rec in zip(outs, params, recorded))
         tasks.append(ConvertTask(v, src.kind, src.name, resolution, p0.seed, p0.frames,
-                                 p0.spike_block().dat_bytes, levels, (os.cpu_count() or 1) if in_process else 1))
+                                 p0.spike_block().dat_bytes, levels, (os.cpu_count() or 1) if in_process else 1,
+                                 lens))
     return tasks
 
 
@@ -302,13 +338,14 @@ def _claim(out: Path, params: ConvertParams) -> None:
     write_json_atomic(job, {"parameters": params.to_json()})
 
 
-def _finish(out: Path, src: Source, params: ConvertParams, sensor: Sensor) -> None:
+def _finish(out: Path, src: Source, params: ConvertParams, sensor: Sensor, lens: Intrinsics | None = None) -> None:
     spike = params.spike_block()
     dats = []
     for split in SPLITS:
         views = tuple(v for v in src.views if v.split == split)
         if views:
-            write_json_atomic(out / f"transforms_{split}.json", Transforms(src.camera_angle_x, spike, views).to_json())
+            doc = Transforms(src.camera_angle_x, spike, views, lens).to_json()
+            write_json_atomic(out / f"transforms_{split}.json", doc)
             dats += [v.name + ".dat" for v in views]
     save_sensor(sensor, out / "sensor")
     write_bytes_atomic(out / CONFIG_YAML, spikecv_config(spike, dats).encode())

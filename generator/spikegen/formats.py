@@ -22,6 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from .errors import InputError
+from .lens import lens_problem
 
 SPLITS = ("train", "val", "test")
 RENDER_FORMAT = "spikegen-render/1"
@@ -407,10 +408,13 @@ class Transforms:
     camera_angle_x: float
     spike: SpikeBlock
     frames: tuple  # ViewRecord
-    intrinsics: "Intrinsics | None" = None  # read from an imported capture's fl_x ... h; not written here
+    intrinsics: "Intrinsics | None" = None  # fl_x ... h (and k1): an imported capture's, or a lens's
 
     def to_json(self) -> dict:
-        return {"camera_angle_x": self.camera_angle_x, "spike": self.spike.to_json(),
+        """The document; intrinsics are written only when given (``spikegen convert --lens-k1``: the
+        renderer's camera with a lens), so a pinhole dataset keeps the NeRF-synthetic layout."""
+        lens = self.intrinsics.to_json() if self.intrinsics is not None else {}
+        return {"camera_angle_x": self.camera_angle_x, **lens, "spike": self.spike.to_json(),
                 "frames": [v.transforms_frame() for v in self.frames]}
 
     @classmethod
@@ -477,10 +481,13 @@ class ConvertParams(_Parameters):
     seed: int
     readout_hz: int = READOUT_HZ
     render: dict = field(default_factory=dict)  # the render folder's engine, samples, motion_deg, seed, frames
+    lens_k1: float = 0.0  # radial lens the views were warped through (spikegen.lens); 0: pinhole
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
         d["intensity"] = intensity_json(self.intensity)
+        if not self.lens_k1:  # a pinhole dataset's manifest keeps the bytes it had before lenses existed
+            del d["lens_k1"]
         return d
 
     def spike_block(self) -> SpikeBlock:
@@ -580,6 +587,7 @@ class ConvertTask:
     dat_bytes: int
     levels: tuple  # LevelOutput
     threads: int = 1
+    lens: "Intrinsics | None" = None  # warp the view through this lens (spikegen.lens.warp_to_lens); None: pinhole
 
 
 # ---------------------------------------------------------------------- real captures (spikegen import)
@@ -587,6 +595,8 @@ POSES_FROM_COLMAP = "colmap"  # transforms "poses_from": structure from motion w
 IMAGE_KIND_RECONSTRUCTION = "reconstruction"  # a frame's PNG was reconstructed from its own spikes
 CAPTURE_FRAME_KEYS = ("image_kind", "near", "far")  # keys of an imported frame kept in ViewRecord.extra
 INTRINSICS_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
+LENS_CAMERA_MODEL = "OPENCV"  # transforms "camera_model" when k1 != 0 (nerfstudio's name; k2, p1, p2 = 0)
+UNMODELLED_LENS_KEYS = ("k2", "k3", "k4", "p1", "p2")  # OpenCV coefficients a transforms file may carry
 RECONSTRUCTIONS = ("tfi", "tfp")  # spikegen.recon methods an import can write as the views' images
 
 
@@ -594,7 +604,8 @@ RECONSTRUCTIONS = ("tfi", "tfp")  # spikegen.recon methods an import can write a
 class Intrinsics:
     """Pinhole intrinsics as nerfstudio and instant-ngp read them: focal lengths and principal
     point in pixels (x right, y down, origin at the top-left corner of the top-left pixel), and
-    the image size ``w`` x ``h``."""
+    the image size ``w`` x ``h``; with ``k1`` != 0 a radial lens (:mod:`spikegen.lens`), written as
+    ``"camera_model": "OPENCV"`` and ``"k1"`` (the other OpenCV coefficients 0), as both read it."""
 
     fl_x: float
     fl_y: float
@@ -602,6 +613,7 @@ class Intrinsics:
     cy: float
     w: int
     h: int
+    k1: float = 0.0
 
     @property
     def camera_angle_x(self) -> float:
@@ -609,12 +621,22 @@ class Intrinsics:
         return 2.0 * math.atan(self.w / (2.0 * self.fl_x))
 
     def to_json(self) -> dict:
-        return {key: getattr(self, key) for key in INTRINSICS_KEYS}
+        doc = {key: getattr(self, key) for key in INTRINSICS_KEYS}
+        if self.k1:
+            doc.update(camera_model=LENS_CAMERA_MODEL, k1=self.k1)
+        return doc
+
+    @classmethod
+    def centred(cls, width: int, height: int, camera_angle_x: float, k1: float = 0.0) -> "Intrinsics":
+        """The renderer's camera (square pixels, principal point at the image centre) as intrinsics."""
+        f = focal_px(width, camera_angle_x)
+        return cls(f, f, 0.5 * width, 0.5 * height, int(width), int(height), float(k1))
 
     @classmethod
     def from_json(cls, doc: dict, where: str, spike: SpikeBlock) -> "Intrinsics | None":
         """The intrinsics of a transforms document, None when it has none (a NeRF-synthetic layout);
-        an ``InputError`` when they are incomplete, not positive, or of another size than ``spike``."""
+        an ``InputError`` when they are incomplete, not positive, of another size than ``spike``, or
+        carry a lens this project does not model (any OpenCV coefficient but ``k1``)."""
         if not any(key in doc for key in INTRINSICS_KEYS):
             return None
         vals = [doc.get(key) for key in INTRINSICS_KEYS]
@@ -622,7 +644,15 @@ class Intrinsics:
                    for v in vals):
             raise InputError(f"{where}: intrinsics {', '.join(INTRINSICS_KEYS)} must all be positive numbers, "
                              f"got {vals}")
-        out = cls(*(float(v) for v in vals[:4]), int(vals[4]), int(vals[5]))
+        other = [key for key in UNMODELLED_LENS_KEYS if doc.get(key, 0) != 0]
+        if other:
+            raise InputError(f"{where}: lens coefficient {other[0]} = {doc[other[0]]!r} is not modelled "
+                             "(only the radial k1; undistort the images first)")
+        k1 = doc.get("k1", 0.0)
+        problem = lens_problem(k1, int(vals[4]), int(vals[5]), *(float(v) for v in vals[:4]))
+        if problem:
+            raise InputError(f"{where}: {problem}")
+        out = cls(*(float(v) for v in vals[:4]), int(vals[4]), int(vals[5]), float(k1))
         if (out.w, out.h) != (spike.width, spike.height):
             raise InputError(f"{where}: intrinsics are for {out.w}x{out.h} images, the spike block says "
                              f"{spike.width}x{spike.height}")
@@ -643,10 +673,13 @@ class ImportParams(_Parameters):
     pycolmap: str  # version of pycolmap that found the poses
     seed: int = 0  # pycolmap's random seed
     readout_hz: int = READOUT_HZ
+    camera_model: str = "SIMPLE_PINHOLE"  # COLMAP's camera model of the reconstruction
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
         d["files"] = list(self.files)
+        if self.camera_model == "SIMPLE_PINHOLE":  # the manifests written before the choice existed keep their bytes
+            del d["camera_model"]
         return d
 
 

@@ -45,7 +45,9 @@ SFM_SEED = 0  # every random seed pycolmap takes
 INIT_MIN_TRI_ANGLE_DEG = 4.0  # COLMAP's 16 degrees is more than a handheld patch's baseline gives
 INIT_MIN_INLIERS = 50  # COLMAP's 100 is more than a small spike frame's features give
 MAX_REPROJ_ERROR_PX = 0.5  # tracks merged, completed and kept only within this (COLMAP: 4 px); measured, docs
-CAMERA_MODEL = "SIMPLE_PINHOLE"  # one focal length, principal point at the image centre (kept fixed)
+CAMERA_MODELS = {"simple-pinhole": "SIMPLE_PINHOLE",  # one focal length, principal point at the centre (fixed)
+                 "simple-radial": "SIMPLE_RADIAL"}  # the same and a radial lens k1 (spikegen.lens), refined
+DEFAULT_CAMERA_MODEL = "simple-pinhole"  # the lens of every synthetic capture here (docs/real_captures.md)
 DEFAULT_RECONSTRUCTION = "tfp"  # chosen by measured pose accuracy (docs/real_captures.md)
 WHITE_PERCENTILE = 99.5  # the brightness shown as white in a view's PNG
 BOUND_PERCENTILES = (1.0, 99.0)  # near / far: these percentiles of a view's sparse-point depths ...
@@ -184,16 +186,17 @@ def _sfm_options(pycolmap):
     return extraction, matching, verification, mapping
 
 
-def run_sfm(image_dir: Path, names: list[str], progress: bool = True):
+def run_sfm(image_dir: Path, names: list[str], progress: bool = True, camera_model: str = DEFAULT_CAMERA_MODEL):
     """pycolmap's reconstruction of ``names`` (images in ``image_dir``) holding the most registered
-    images, or ``None`` when it registers none. Work files go to a temporary folder."""
+    images, or ``None`` when it registers none; one camera of ``camera_model`` (a key of
+    :data:`CAMERA_MODELS`) shared by all views. Work files go to a temporary folder."""
     from tqdm import tqdm
 
     pycolmap = _pycolmap()
     pycolmap.logging.minloglevel = pycolmap.logging.Level.ERROR.value  # COLMAP's progress lines off
     pycolmap.set_random_seed(SFM_SEED)
     extraction, matching, verification, mapping = _sfm_options(pycolmap)
-    reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODEL)
+    reader = pycolmap.ImageReaderOptions(camera_model=CAMERA_MODELS[camera_model])
     with tempfile.TemporaryDirectory(prefix="spikegen-sfm-") as work, \
             tqdm(total=3, desc="sfm (features, matches, mapping)", disable=not progress) as bar:
         db = Path(work) / "database.db"
@@ -235,8 +238,14 @@ def sfm_result(rec, names: list[str]) -> SfmResult:
     cam = by_name[found[0]].camera if found else None
     intr = None if cam is None else Intrinsics(float(cam.focal_length_x), float(cam.focal_length_y),
                                                float(cam.principal_point_x), float(cam.principal_point_y),
-                                               int(cam.width), int(cam.height))
+                                               int(cam.width), int(cam.height), _k1(cam))
     return SfmResult(tuple(found), np.array(poses).reshape(-1, 4, 4), tuple(points), intr)
+
+
+def _k1(cam) -> float:
+    """The radial coefficient of a COLMAP camera (SIMPLE_RADIAL's params are f, cx, cy, k); 0 for a pinhole."""
+    model = cam.model.name if hasattr(cam.model, "name") else str(cam.model)
+    return float(cam.params[3]) if model.endswith("SIMPLE_RADIAL") else 0.0
 
 
 # ---------------------------------------------------------------------- stage 3: the normalised frame
@@ -284,7 +293,8 @@ def view_bounds(c2w: np.ndarray, points: np.ndarray, m: np.ndarray) -> tuple[flo
 
 # ---------------------------------------------------------------------- the whole import
 def import_capture(capture, size, out, calibration=None, frames: int | None = None,
-                   reconstruction: str = DEFAULT_RECONSTRUCTION, progress: bool = True) -> Path:
+                   reconstruction: str = DEFAULT_RECONSTRUCTION, progress: bool = True,
+                   camera_model: str = DEFAULT_CAMERA_MODEL) -> Path:
     """Write the dataset folder ``out`` from the spike files in ``capture``; returns ``out``.
 
     Everything about the input is checked before anything is written. An error after that (no
@@ -295,17 +305,20 @@ def import_capture(capture, size, out, calibration=None, frames: int | None = No
     out = Path(out)
     if reconstruction not in RECONSTRUCTIONS:
         raise InputError(f"--recon {reconstruction!r}: expected one of {', '.join(RECONSTRUCTIONS)}")
+    if camera_model not in CAMERA_MODELS:
+        raise InputError(f"--camera-model {camera_model!r}: expected one of {', '.join(CAMERA_MODELS)}")
     files = list_capture(capture, size)
     frames = _frames(files, frames)
     sensor, digest = _calibration(calibration, size)
     params = ImportParams(Path(capture).resolve().name, tuple(f.path.name for f in files), size[0], size[1], frames,
-                          reconstruction, digest, _pycolmap().__version__, SFM_SEED)
+                          reconstruction, digest, _pycolmap().__version__, SFM_SEED,
+                          camera_model=CAMERA_MODELS[camera_model])
     created = not out.exists()
     _claim(out, params)
     try:
         rate99 = write_views(files, size, frames, reconstruction, sensor, out, progress)
         names = [f"r_{i}.png" for i in range(len(files))]
-        sfm = sfm_result(run_sfm(out / "train", names, progress), names)
+        sfm = sfm_result(run_sfm(out / "train", names, progress, camera_model), names)
         _check_registered(sfm, files, capture)
         with tqdm(total=1, desc="write", disable=not progress) as bar:
             _write_dataset(out, params, sfm, files, rate99, sensor)

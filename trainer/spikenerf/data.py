@@ -61,12 +61,13 @@ class Dataset:
 
     def camera(self, height: int, width: int):
         """The camera at ``height x width``: the square-pixel centred focal length (a float, as before)
-        without intrinsics, else ``(fl_x, fl_y, cx, cy)`` scaled to that size (render.pixel_rays)."""
+        without intrinsics, else ``(fl_x, fl_y, cx, cy)`` scaled to that size, and ``k1`` last when the
+        lens is radial (render.pixel_rays; ``k1`` acts on normalised coordinates, so no scaling)."""
         if self.intrinsics is None:
             return self.focal_px * width / self.width
         k = self.intrinsics
         sx, sy = width / k.w, height / k.h
-        return (k.fl_x * sx, k.fl_y * sy, k.cx * sx, k.cy * sy)
+        return (k.fl_x * sx, k.fl_y * sy, k.cx * sx, k.cy * sy) + ((k.k1,) if k.k1 else ())
 
 
 def has_ground_truth(view: ViewRecord) -> bool:

@@ -22,7 +22,7 @@ to the mean of their up axes. Near plane ``n``: the smallest depth along the ref
 a training view's ``near`` bound reaches (``near_i - Z_i``, ``Z_i`` the view's centre's Z in the
 reference axes). The grid's box: x and y spanning every training view's frustum from the near
 plane to infinity (the NDC images of its four corner rays: the frustum is convex and its edges stay
-straight), z from -1 to 1.
+straight; through a radial lens the edges bend, so rays along each edge are taken too), z from -1 to 1.
 
 A capture is forward-facing when it has near/far bounds for every training view, every
 training view's optical axis is within ``MAX_AXIS_DEG`` of the reference axis, every camera
@@ -35,6 +35,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import torch
+from spikegen.lens import undistort
 
 MAX_AXIS_DEG = 45.0  # the largest angle between a view's optical axis and the reference axis
 MIN_FORWARD = 0.05  # a ray's direction must have at least this much of the reference -Z (unit directions)
@@ -108,6 +109,26 @@ def reference_pose(poses: np.ndarray) -> np.ndarray:
     return out
 
 
+EDGE_POINTS = 33  # points per image edge whose rays bound a view through a radial lens
+
+
+def _boundary_dirs(k) -> np.ndarray:
+    """Camera-space directions ``[c, 3]`` (OpenGL axes, not normalised) of the rays that bound an
+    image of intrinsics ``k``: its four corners for a pinhole; with a radial lens (``k.k1``) also
+    :data:`EDGE_POINTS` points along each edge, undistorted (spikegen.lens), since the lens bends the
+    edges and the widest ray of an edge need not be a corner's."""
+    if not k.k1:
+        pts = [(u, v) for u in (0, k.w) for v in (0, k.h)]
+    else:
+        t = np.linspace(0.0, 1.0, EDGE_POINTS)
+        pts = ([(k.w * a, v) for a in t for v in (0, k.h)] + [(u, k.h * a) for a in t for u in (0, k.w)])
+    x = np.array([(u - k.cx) / k.fl_x for u, _ in pts])
+    y = np.array([(v - k.cy) / k.fl_y for _, v in pts])
+    if k.k1:
+        x, y = undistort(x, y, k.k1)
+    return np.stack([x, -y, -np.ones_like(x)], axis=1)
+
+
 def for_dataset(ds) -> tuple[NDC | None, str]:
     """(the NDC space of a forward-facing dataset, or None; a line saying which and why)."""
     views = ds.splits["train"]
@@ -127,7 +148,7 @@ def for_dataset(ds) -> tuple[NDC | None, str]:
         return None, "not forward-facing: a camera lies in front of the near plane the bounds give"
     k = ds.intrinsics
     a, b = (2 * k.fl_x / k.w, 2 * k.fl_y / k.h), (2 * k.cx / k.w - 1, 1 - 2 * k.cy / k.h)
-    corners = np.array([[(u - k.cx) / k.fl_x, -(v - k.cy) / k.fl_y, -1.0] for u in (0, k.w) for v in (0, k.h)])
+    corners = _boundary_dirs(k)
     d = np.einsum("nij,cj->nci", poses[:, :3, :3], corners)
     d /= np.linalg.norm(d, axis=-1, keepdims=True)
     d_ref = d @ ref[:3, :3]
@@ -135,7 +156,7 @@ def for_dataset(ds) -> tuple[NDC | None, str]:
         return None, "not forward-facing: a view's corner ray does not point forward of the mean view"
     space = NDC(tuple(map(tuple, ref.tolist())), near, a, b, ((0.0,) * 3, (0.0,) * 3),
                 float(np.median(np.linalg.norm(poses[:, :3, 3] - ref[:3, 3], axis=1))))
-    o = torch.as_tensor(np.repeat(poses[:, None, :3, 3], 4, axis=1).reshape(-1, 3))
+    o = torch.as_tensor(np.repeat(poses[:, None, :3, 3], len(corners), axis=1).reshape(-1, 3))
     o_ndc, d_ndc, length = space.rays(o, torch.as_tensor(d.reshape(-1, 3)))
     ends = torch.cat([o_ndc, o_ndc + length[:, None] * d_ndc]).numpy()  # near-plane and infinity ends
     lo, hi = ends[:, :2].min(0), ends[:, :2].max(0)

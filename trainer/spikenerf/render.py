@@ -14,6 +14,7 @@ Cameras follow NeRF-synthetic (Blender) axes: the camera looks down its -z, +y u
 from __future__ import annotations
 
 import torch
+from spikegen.lens import undistort_scale
 
 from .model import COARSE
 
@@ -30,17 +31,25 @@ def pixel_rays(poses: torch.Tensor, pix: torch.Tensor, height: int, width: int, 
     """Rays of pixels ``pix [n]`` (flat index row * W + col) seen by cameras ``poses [n, 4, 4]``.
 
     ``focal_px``: one focal length (square pixels, principal point at the image centre), or
-    ``(fl_x, fl_y, cx, cy)`` in pixels (principal point from the top-left corner of the image).
+    ``(fl_x, fl_y, cx, cy)`` in pixels (principal point from the top-left corner of the image), or
+    ``(fl_x, fl_y, cx, cy, k1)`` for a radial lens: each pixel centre is undistorted first
+    (spikegen.lens.undistort_scale, the model the generator warps with).
     Returns origins ``[n, 3]`` and unit directions ``[n, 3]``.
     """
+    k1 = 0.0
     if isinstance(focal_px, (tuple, list)):
-        fx, fy, cx, cy = (float(v) for v in focal_px)
+        fx, fy, cx, cy, *lens = (float(v) for v in focal_px)
+        k1 = lens[0] if lens else 0.0
     else:
         fx = fy = focal_px
         cx, cy = 0.5 * width, 0.5 * height
     row = torch.div(pix, width, rounding_mode="floor").to(poses.dtype)
     col = (pix % width).to(poses.dtype)
-    d_cam = torch.stack([(col + 0.5 - cx) / fx, -(row + 0.5 - cy) / fy, -torch.ones_like(col)], dim=-1)
+    x, y = (col + 0.5 - cx) / fx, (row + 0.5 - cy) / fy  # normalised, y down
+    if k1:
+        s = undistort_scale(x * x + y * y, k1)
+        x, y = x * s, y * s
+    d_cam = torch.stack([x, -y, -torch.ones_like(col)], dim=-1)
     d = torch.einsum("nij,nj->ni", poses[:, :3, :3], d_cam)
     return poses[:, :3, 3], d / d.norm(dim=-1, keepdim=True)
 

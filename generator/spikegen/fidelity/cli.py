@@ -111,7 +111,7 @@ def diagnose(measured, ref, size, intensity, baseline, json_path, report_dir, sa
     if report_dir is not None:
         from .report import write_report
 
-        write_report(result, spikes.dense(), radiance, report_dir)
+        write_report(result, spikes, radiance, report_dir)
     _print_summary(result)
 
 

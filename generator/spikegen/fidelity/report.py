@@ -9,7 +9,9 @@ from pathlib import Path
 import numpy as np
 
 from ..spikeio import atomic_path, write_bytes_atomic
-from . import stats
+from . import bands, stats
+
+ISI_MAX = 200  # the interval histogram's last bin (frames)
 
 
 def save_figure(path, draw, size=(5.5, 4.0), dpi=110):
@@ -30,16 +32,35 @@ def save_figure(path, draw, size=(5.5, 4.0), dpi=110):
 
 
 def _plots(result, spikes, radiance, out: Path) -> list:
-    """Write the report's PNGs into ``out``; returns ``[(file name, caption)]``."""
+    """Write the report's PNGs into ``out``; returns ``[(file name, caption)]``. ``spikes``: the
+    measured stream ``[T, H, W]`` or a :class:`~.bands.Stream` (packed): its fit frames are read a
+    band of rows at a time, never unpacked whole."""
     Tf = result.info["fit_frames"]
+    stream = bands.Stream.of(spikes)
     names = []
     if not isinstance(radiance, str) and result.fit.rate.lam_pred is not None:
         names += _model_plots(result, radiance, out)
     if getattr(result, "static", None) is not None and not result.static.all():
         names.append(_static_plot(result.static, out))
-    names.append(_spectrum_plot(spikes[:Tf], out))
-    names.append(_isi_plot(spikes[:Tf], out))
+    signal, histogram = _fit_frame_sums(stream, Tf)
+    names.append(_spectrum_plot(signal, out))
+    names.append(_isi_plot(histogram, out))
     return names
+
+
+def _fit_frame_sums(stream: "bands.Stream", Tf: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(population signal [Tf], interval counts [ISI_MAX + 1])`` of the first ``Tf`` frames: the
+    spikes of all pixels per frame, and how many intervals (a pixel's own, so none crosses a band)
+    last k frames, k = 1 .. ISI_MAX (longer ones are not counted); summed band by band."""
+    T, H, W = stream.shape
+    signal = np.zeros(Tf, dtype=np.int64)
+    histogram = np.zeros(ISI_MAX + 1, dtype=np.int64)
+    for r0, r1 in bands.bands(H, bands.band_rows(Tf, H, W)):
+        band = stream.rows(r0, r1, 0, Tf)
+        signal += band.reshape(Tf, -1).sum(axis=1, dtype=np.int64)
+        isi, _ = stats.intervals(band)
+        histogram += np.bincount(isi[isi <= ISI_MAX].astype(np.int64), minlength=ISI_MAX + 1)
+    return signal.astype(np.float64), histogram
 
 
 def _model_plots(result, radiance, out: Path) -> list:
@@ -86,10 +107,9 @@ def _static_plot(static, out: Path) -> tuple:
     return "static_mask.png", "Pixels whose rate does not change (white); only these are judged with 'self'."
 
 
-def _spectrum_plot(fit_spikes, out: Path) -> tuple:
-    """Power spectrum of the population signal of ``fit_spikes [Tf, H, W]``."""
-    Tf = fit_spikes.shape[0]
-    s = fit_spikes.reshape(Tf, -1).sum(axis=1).astype(np.float64)
+def _spectrum_plot(s: np.ndarray, out: Path) -> tuple:
+    """Power spectrum of the population signal ``s [Tf]`` (spikes of all pixels per fit frame)."""
+    Tf = s.shape[0]
 
     def spectrum_plot(ax):
         p = np.abs(np.fft.rfft(s - s.mean())) ** 2 / Tf
@@ -102,14 +122,14 @@ def _spectrum_plot(fit_spikes, out: Path) -> tuple:
     return "spectrum.png", "Temporal spectrum of the population signal (flicker shows as a line)."
 
 
-def _isi_plot(fit_spikes, out: Path) -> tuple:
-    """Pooled inter-spike-interval histogram of ``fit_spikes [Tf, H, W]``."""
-    ps = stats.pixel_stats(fit_spikes)
+def _isi_plot(histogram: np.ndarray, out: Path) -> tuple:
+    """Pooled inter-spike-interval histogram (``histogram[k]``: intervals of k frames) of the fit frames."""
 
     def isi_plot(ax):
-        v = ps.isi_values
-        if v.size:
-            ax.hist(v, bins=np.arange(0.5, min(v.max(), 200) + 1.5), log=True)
+        top = int(np.flatnonzero(histogram)[-1]) if histogram.any() else 0
+        if top:
+            ax.stairs(histogram[1:top + 1], np.arange(0.5, top + 1.5), fill=True)
+            ax.set_yscale("log")
         ax.set_xlabel("inter-spike interval (frames)")
         ax.set_ylabel("count")
 
