@@ -388,6 +388,21 @@ def render_intensity_absurd(w):
     return ["render", "--scene", "lego", "--intensity", "1e12", "--out", w / "out"], "--intensity"
 
 
+@case
+def render_barrel_lens(w):
+    return rend(w, "--scene", "lego", "--lens-k1", "-0.2"), "barrel lens"
+
+
+@case
+def convert_barrel_lens(w):
+    return conv(w / "render", w / "out", "--lens-k1", "-0.1"), "barrel lens"
+
+
+@case
+def convert_lens_not_finite(w):
+    return conv(w / "src", w / "out", "--lens-k1", "nan"), "--lens-k1"
+
+
 # --- verify
 @case
 def verify_missing_folder(w):

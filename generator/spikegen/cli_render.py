@@ -8,6 +8,7 @@ from pathlib import Path
 
 import click
 
+from .dataset import check_lens_k1
 from .errors import InputError
 from .camera import HANDHELD_SIZE, HANDHELD_VIEWS
 from .formats import DEFAULT_MOTION_DEG, QUICK, RIGS, RenderJob
@@ -53,10 +54,12 @@ from .spikeio import parse_size
 @click.option("--device", type=click.Choice(["auto", "cpu", "gpu"]), default="auto", show_default=True,
               help="Cycles device: auto = the first GPU backend found (OptiX, CUDA, HIP, Metal, oneAPI), else the "
                    "CPU; gpu = refuse to run without one. Recorded in render.json; GPU and CPU bytes differ.")
+@click.option("--lens-k1", type=float, default=0.0, show_default=True,
+              help="Convert through a radial lens of this k1 > 0 (as spikegen convert --lens-k1; 0: pinhole).")
 @click.option("--gpu-index", type=click.IntRange(min=0), default=None,
               help="Render on this one GPU of the backend (e.g. one per process on a multi-GPU machine).")
 def render(scene, intensities, out_dir, resolution, views, subframes, frames, motion_deg, samples, png_samples,
-           denoise, engine, blend, sensor, seed, workers, scheduler, quick, device, gpu_index, rig):
+           denoise, engine, blend, sensor, seed, workers, scheduler, quick, device, gpu_index, rig, lens_k1):
     """Render a scene through Blender and write <out>/<scene>_i<I>/ for each intensity."""
     name, source = _scene_name(scene, blend)
     width, height = _image_size(resolution, rig, quick)
@@ -66,6 +69,10 @@ def render(scene, intensities, out_dir, resolution, views, subframes, frames, mo
     msgs = check_export(job, intensities, sensor, seed)  # fail before rendering anything
     if workers < 1:
         msgs.append(f"--workers must be a positive integer, got {workers}")
+    try:
+        check_lens_k1(lens_k1)
+    except InputError as exc:
+        msgs.append(str(exc))
     if msgs:
         raise InputError(msgs[0])
     levels = [float(i) for i in intensities]
@@ -79,7 +86,7 @@ def render(scene, intensities, out_dir, resolution, views, subframes, frames, mo
     try:
         folder = run_render(job, out_dir, blend, gpu_index, notes)
         for f in convert_all(folder, out_dir, levels, sensor=sensor, seed=seed, workers=workers, scheduler=client,
-                             progress=True):
+                             progress=True, lens_k1=lens_k1):
             click.echo(str(f))
     finally:
         if client is not None:

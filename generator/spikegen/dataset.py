@@ -290,15 +290,21 @@ def _output_size(src: Source, frames, resolution) -> tuple[int, int]:
     return width, height
 
 
-def _lens(src: Source, width: int, height: int, k1) -> Intrinsics | None:
-    """The renderer's camera at the output size with the radial lens ``k1`` (None for 0: pinhole)."""
+def check_lens_k1(k1) -> float:
+    """``--lens-k1`` as a float, or an ``InputError``: a number, and not a barrel lens (``k1 < 0``),
+    which would image more than the rendered pinhole view holds."""
     if isinstance(k1, bool) or not isinstance(k1, (int, float)) or not math.isfinite(k1):
         raise InputError(f"--lens-k1 must be a number, got {k1!r}")
-    if k1 == 0:
-        return None
     if k1 < 0:
         raise InputError(f"--lens-k1 {k1:g}: a barrel lens (k1 < 0) images more than the rendered pinhole view "
                          "holds; only k1 > 0 (pincushion) can be made from it")
+    return float(k1)
+
+
+def _lens(src: Source, width: int, height: int, k1) -> Intrinsics | None:
+    """The renderer's camera at the output size with the radial lens ``k1`` (None for 0: pinhole)."""
+    if check_lens_k1(k1) == 0:
+        return None
     lens = Intrinsics.centred(width, height, src.camera_angle_x, float(k1))
     problem = lens_problem(lens.k1, width, height, lens.fl_x, lens.fl_y, lens.cx, lens.cy)
     if problem:

@@ -212,12 +212,13 @@ def images_per_view(job: RenderJob) -> int:
 
 
 def convert_all(folder: RenderFolder, out_dir, intensities, sensor="paper", seed: int = 0, workers: int = 1,
-                scheduler=None, progress: bool = True, stop=None) -> list[Path]:
+                scheduler=None, progress: bool = True, stop=None, lens_k1: float = 0.0) -> list[Path]:
     """Spike datasets ``<out_dir>/<scene>_i<I>/`` from a finished render folder, one per intensity,
-    in one pass over the renders (see :func:`spikegen.dataset.convert`, which also explains ``stop``)."""
+    in one pass over the renders (see :func:`spikegen.dataset.convert`, which also explains ``stop``
+    and ``lens_k1``)."""
     from .dataset import convert
 
     if not folder.complete():
         raise OutputError(f"{folder.path}: {len(folder.pending())} views are not rendered yet")
     return convert(folder.path, out_dir, list(intensities), sensor=sensor, frames=folder.job.frames, seed=seed,
-                   workers=workers, scheduler=scheduler, progress=progress, stop=stop)
+                   workers=workers, scheduler=scheduler, progress=progress, stop=stop, lens_k1=lens_k1)
