@@ -131,3 +131,20 @@ def test_convert_through_a_lens_warps_the_views_and_the_trainer_reads_k1(tmp_pat
     assert main(args + ["--out", str(tmp_path / "barrel"), "--lens-k1", "-0.1"]) != 0
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "barrel" in err and not (tmp_path / "barrel").exists()
+
+
+def test_a_field_trains_and_evaluates_through_the_lens(tmp_path):
+    from spikenerf.config import TrainConfig
+    from spikenerf.eval import evaluate
+    from spikenerf.train import checkpoint_camera, load_checkpoint, train
+
+    src = _textured_nerf(tmp_path / "tex", n=3)
+    assert main(["convert", str(src), "--intensity", "64", "--sensor", "ideal", "--frames", "64", "--lens-k1", "0.2",
+                 "--out", str(tmp_path / "lens")]) == 0
+    run = tmp_path / "run"
+    train(TrainConfig(dataset=str(tmp_path / "lens" / "tex_i64"), iters=3, device="cpu", batch_rays=64), run,
+          progress=False, log=lambda *a: None)
+    ck = load_checkpoint(run / "checkpoint.pt", "cpu")
+    assert checkpoint_camera(ck)[2][4] == 0.2  # the lens travels with the checkpoint to eval and render
+    metrics = evaluate(run, device="cpu", progress=False)
+    assert np.isfinite(metrics["psnr"])
