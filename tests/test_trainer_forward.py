@@ -138,3 +138,11 @@ def test_bad_intrinsics_are_one_line(capture, tmp_path, change, words):
     write_json_atomic(tmp_path / "transforms_train.json", doc)
     res = CliRunner().invoke(main, ["train", str(tmp_path), "--iters", "1", "--out", str(tmp_path / "r")])
     assert res.exit_code != 0 and words in res.output and len(res.output.strip().splitlines()) == 1, res.output
+
+
+def test_a_training_width_that_does_not_divide_the_height_is_one_line(capture, tmp_path):
+    # 40 / 8 = 5 divides the width but not the height (24): the message names both sides
+    res = CliRunner().invoke(main, ["train", str(capture), "--iters", "1", "--resolution", "8",
+                                    "--out", str(tmp_path / "r")])
+    assert res.exit_code != 0 and "40 x 24" in res.output and len(res.output.strip().splitlines()) == 1, res.output
+    assert not (tmp_path / "r" / "checkpoint.pt").exists()

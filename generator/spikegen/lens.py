@@ -1,5 +1,7 @@
 """Radial lens distortion with one coefficient: COLMAP's ``SIMPLE_RADIAL``, OpenCV's ``k1`` with
-``k2 = p1 = p2 = 0`` (shared/specs/dataset.md, "Real captures").
+``k2 = p1 = p2 = 0``. A dataset carries it as nerfstudio's transforms do (``"camera_model": "OPENCV"``
+and ``"k1"`` beside ``fl_x, fl_y, cx, cy``; ``spikegen.formats.Intrinsics``): an addition to the pinhole
+intrinsics of shared/specs/dataset.md, "Real captures" (docs/real_captures.md, "Lens distortion").
 
 A point at normalised pinhole coordinates ``(x_u, y_u) = (X / Z, Y / Z)`` (camera axes x right,
 y down, z forward) is imaged at ``(x_d, y_d) = (x_u, y_u) (1 + k1 r_u^2)`` with ``r_u^2 = x_u^2 +

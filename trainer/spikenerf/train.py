@@ -268,7 +268,8 @@ def _resolution(ds, res: int) -> tuple[int, int]:
     if not res or res == ds.width:
         return ds.height, ds.width
     if res < 8 or ds.width % res or ds.height % (ds.width // res):
-        raise InputError(f"--resolution {res}: must divide the dataset width {ds.width} by an integer factor")
+        raise InputError(f"--resolution {res}: the dataset's {ds.width} x {ds.height} must shrink to width {res} "
+                         "by one integer factor that divides both sides")
     f = ds.width // res
     return ds.height // f, res
 
