@@ -30,11 +30,13 @@ method; ``--view``: a copy of that method's image (PNG) of the first registered 
 seed 0, at ``--resolution``) twice, on the imported dataset and on the same dataset with the true
 poses (:func:`true_pose_dataset`: ``DIR/<recon>_truth``), and print each field's held-out PSNR
 (``spikenerf eval``; the trainer holds out every 8th registered view, the same views in both) and
-the difference, and the best constant image's PSNR. Imported views have no ground truth, so both
-fields are scored against each held-out view's own long-window reconstruction (the same reference
-images for both); each field renders the held-out views at the poses of its own dataset (SfM's, or
-the truth's moved into the import's frame).
-``--heldout PNG``: the second held-out view, reconstruction | imported poses | true poses.
+the difference, and the best constant image's PSNR. Both fields are scored against the same
+references twice: each held-out view's own long-window reconstruction, and, where the capture
+folder holds each spike file's true image beside it (``r_N.png``, as ``spikegen render`` and
+``convert`` write it), that ground truth (imported with ``--truth-images``; ``spikenerf eval
+--compare-with``). Each field renders the held-out views at the poses of its own dataset (SfM's,
+or the truth's moved into the import's frame).
+``--heldout PNG``: the second held-out view, ground truth (else reconstruction) | imported poses | true poses.
 ``--perturb DEG``: a third run, on the true poses each turned by DEG degrees about a random axis
 (seed 0; centres kept): what a known pose error costs, to show the comparison can see one.
 ``--reuse-runs``: keep a run folder whose checkpoint already has ITERS iterations and its metrics
@@ -68,7 +70,7 @@ def measure(args, recon: str) -> dict:
     shutil.rmtree(out, ignore_errors=True)
     t0 = time.perf_counter()
     import_capture(args.capture, parse_size(args.size), out, args.calibration, args.frames, recon, progress=False,
-                   camera_model=args.camera_model)
+                   camera_model=args.camera_model, truth_images=truth_images(Path(args.capture)))
     wall_s = time.perf_counter() - t0
     doc = json.loads((out / "transforms_train.json").read_text())
     index = [int(Path(f["source_file"]).stem.split("_")[-1]) for f in doc["frames"]]
@@ -79,6 +81,25 @@ def measure(args, recon: str) -> dict:
            "first": doc["frames"][0]["file_path"]}
     row.update(summarise(pose_errors(est, truth, scene_depth(truth))))
     return row
+
+
+def truth_images(capture: Path) -> Path | None:
+    """``capture`` when every spike file in it has its true image beside it (``<stem>.png``), else None."""
+    spikes = [p for p in capture.iterdir() if p.suffix in (".dat", ".npz")]
+    return capture if spikes and all(p.with_suffix(".png").is_file() for p in spikes) else None
+
+
+def evaluate_both(run: Path) -> dict:
+    """The run's held-out metrics against each view's reconstruction and, where the dataset has
+    one, its ground truth: ``{"reconstruction": ..., "truth": ...}`` (``run/metrics.json`` and
+    ``run/eval_test/`` are the last one's)."""
+    from spikenerf.eval import evaluate
+
+    out = {"reconstruction": evaluate(run, device="cpu", progress=False, compare_with="reconstruction")}
+    auto = evaluate(run, device="cpu", progress=False)
+    if auto["compared_with"] == "ground truth":
+        out["truth"] = auto
+    return out
 
 
 def scene_depth(truth: np.ndarray) -> float:
@@ -158,9 +179,8 @@ def perturbed_dataset(true_ds: Path, degrees: float, out: Path, seed: int = 0) -
 
 def train_both(row: dict, args) -> dict:
     """Train the default method on the imported dataset and on its true-pose twin (and with
-    ``--perturb`` on the true poses turned); held-out metrics."""
+    ``--perturb`` on the true poses turned); held-out metrics (:func:`evaluate_both`)."""
     from spikenerf.config import TrainConfig
-    from spikenerf.eval import evaluate
     from spikenerf.train import load_checkpoint, train
 
     truth = true_pose_dataset(row["out"], Path(args.truth), row, Path(f"{row['out']}_truth"))
@@ -171,15 +191,13 @@ def train_both(row: dict, args) -> dict:
     out = {}
     for name, ds in datasets.items():
         run = Path(args.work) / f"run_{row['recon']}_{name.replace(' ', '_')}"
-        done = (args.reuse_runs and (run / "metrics.json").is_file() and (run / "checkpoint.pt").is_file()
+        done = (args.reuse_runs and (run / "checkpoint.pt").is_file()
                 and load_checkpoint(run / "checkpoint.pt", "cpu")["iteration"] == args.train)
-        if done:
-            out[name] = json.loads((run / "metrics.json").read_text())
-        else:
+        if not done:
             shutil.rmtree(run, ignore_errors=True)
             train(TrainConfig(dataset=str(ds), iters=args.train, resolution=args.resolution, device="cpu", seed=0),
                   run, progress=False, log=lambda *a: None)
-            out[name] = evaluate(run, device="cpu", progress=False)
+        out[name] = evaluate_both(run)
         out[name]["run"] = run
     return out
 
@@ -200,11 +218,12 @@ def constant_psnr(dataset: Path, width: int) -> float:
 
 
 def heldout_picture(metrics: dict, path: str) -> None:
-    """The second held-out view side by side: its reconstruction | rendered from the field trained
-    on imported poses | from the field trained on true poses (eval's ``<view>_gt_vs_pred.png``)."""
+    """The second held-out view side by side: its ground truth (else its reconstruction) | rendered
+    from the field trained on imported poses | from the field trained on true poses (eval's
+    ``<view>_gt_vs_pred.png`` of the last evaluation)."""
     from spikegen.spikeio import read_png, write_png
 
-    view = metrics["imported"]["per_view"][1]["view"].replace("/", "_")
+    view = metrics["imported"]["reconstruction"]["per_view"][1]["view"].replace("/", "_")
     pairs = [read_png(metrics[k]["run"] / "eval_test" / f"{view}_gt_vs_pred.png")[..., 0]
              for k in ("imported", "true poses")]
     width = (pairs[0].shape[1] - 4) // 2  # reference | 4-pixel gap | prediction
@@ -213,18 +232,28 @@ def heldout_picture(metrics: dict, path: str) -> None:
 
 
 def report_training(row: dict, metrics: dict) -> None:
-    imp, tru = metrics["imported"], metrics["true poses"]
-    print(f"training ({row['recon']}, {imp['method']}, {imp['iterations']} iterations, "
-          f"{imp['resolution'][1]} x {imp['resolution'][0]}, held-out: {imp['views_from']}, {imp['views']} views, "
-          f"compared with: {imp['compared_with']})")
-    for name, m in metrics.items():
-        print(f"  {name:15} PSNR {m['psnr']:6.2f} dB  SSIM {m['ssim']:.3f}  ({m['train_seconds']:.0f} s of training)")
-    print(f"  best constant image PSNR {constant_psnr(row['out'], imp['resolution'][1]):6.2f} dB")
-    gap = tru["psnr"] - imp["psnr"]
-    print(f"  true poses - imported: {gap:+.2f} dB  target (within 2 dB): {'met' if abs(gap) <= 2.0 else 'MISSED'}")
-    for i, a in enumerate(imp["per_view"]):
-        print(f"    {a['view']:12} "
-              + "  ".join(f"{name} {m['per_view'][i]['psnr']:6.2f}" for name, m in metrics.items()))
+    first = metrics["imported"]["reconstruction"]
+    print(f"training ({row['recon']}, {first['method']}, {first['iterations']} iterations, "
+          f"{first['resolution'][1]} x {first['resolution'][0]}, held-out: {first['views_from']}, "
+          f"{first['views']} views)")
+    for ref in ("reconstruction", "truth"):
+        if ref not in metrics["imported"]:
+            print("  no ground truth: the capture folder has no true image beside each spike file")
+            continue
+        imp, tru = metrics["imported"][ref], metrics["true poses"][ref]
+        print(f" compared with: {imp['compared_with']}")
+        for name, both in metrics.items():
+            m = both[ref]
+            obj = f"  object {m['psnr_object']:6.2f}" if ref == "truth" else ""
+            print(f"  {name:15} PSNR {m['psnr']:6.2f} dB{obj}  SSIM {m['ssim']:.3f}  "
+                  f"({m['train_seconds']:.0f} s of training)")
+        gap = tru["psnr"] - imp["psnr"]
+        print(f"  true poses - imported: {gap:+.2f} dB  target (within 2 dB): {'met' if abs(gap) <= 2.0 else 'MISSED'}")
+        for i, a in enumerate(imp["per_view"]):
+            print(f"    {a['view']:12} "
+                  + "  ".join(f"{name} {both[ref]['per_view'][i]['psnr']:6.2f}" for name, both in metrics.items()))
+    print(f"  best constant image PSNR {constant_psnr(row['out'], first['resolution'][1]):6.2f} dB "
+          "(against the ground truth where there is one)")
 
 
 def report(rows: list[dict]) -> None:

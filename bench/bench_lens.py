@@ -8,16 +8,20 @@
 CAPTURE is imported twice without its poses (``spikegen import --camera-model simple-pinhole`` and
 ``simple-radial``, into ``DIR/simple-pinhole`` and ``DIR/simple-radial``) and each import's poses are
 scored against TRUTH as bench_import.py does (``spikegen.importer.pose_errors``: medians after the
-centre-only and the full-pose similarity). With ``--train``, the default method is trained (CPU,
-seed 0, ``--resolution`` wide) on three datasets and scored on their held-out views (every 8th
-registered view, against each view's own long-window reconstruction; ``spikenerf eval``):
+centre-only and the full-pose similarity); both imports carry the capture's true images
+(``--truth-images CAPTURE``: ``spikegen convert`` writes each view's ``r_N.png`` beside its spikes,
+warped through the same lens). With ``--train``, the default method is trained (CPU, seed 0,
+``--resolution`` wide) on three datasets and scored on their held-out views (every 8th registered
+view, each rendered at its imported pose; ``spikenerf eval``) twice: against the ground truth, and
+against each view's own long-window reconstruction (``bench_import.evaluate_both``):
 
 - **radial, k1 used**: the simple-radial import as written; the trainer undistorts every pixel's ray;
 - **radial, k1 dropped**: the same folder with ``k1`` removed from its transforms (same poses, same
   focal length, pinhole rays): what ignoring the lens costs the field;
 - **pinhole import**: the simple-pinhole import (SfM's pinhole compromise of poses and focal length).
 
-A rerun imports again (the import is deterministic) and, with ``--reuse-runs``, keeps trained runs.
+A rerun imports again (the import is deterministic) and, with ``--reuse-runs``, keeps trained runs
+(and evaluates them again).
 """
 from __future__ import annotations
 
@@ -34,7 +38,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO / "generator"), str(REPO / "trainer"), str(REPO / "bench")]
 
-from bench_import import scene_depth, summarise, true_poses  # noqa: E402
+from bench_import import evaluate_both, scene_depth, summarise, true_poses, truth_images  # noqa: E402
 from spikegen.cli import _size as parse_size  # noqa: E402
 from spikegen.importer import import_capture, pose_errors  # noqa: E402
 
@@ -47,7 +51,8 @@ def import_both(args) -> dict:
         out = Path(args.work) / model
         shutil.rmtree(out, ignore_errors=True)
         t0 = time.perf_counter()
-        import_capture(args.capture, parse_size(args.size), out, progress=False, camera_model=model)
+        import_capture(args.capture, parse_size(args.size), out, progress=False, camera_model=model,
+                       truth_images=truth_images(Path(args.capture)))
         doc = json.loads((out / "transforms_train.json").read_text())
         index = [int(Path(f["source_file"]).stem.split("_")[-1]) for f in doc["frames"]]
         truth = true_poses(Path(args.truth))[index]
@@ -75,7 +80,6 @@ def without_k1(folder: Path, out: Path) -> Path:
 
 def train_three(rows: dict, args) -> dict:
     from spikenerf.config import TrainConfig
-    from spikenerf.eval import evaluate
     from spikenerf.train import load_checkpoint, train
 
     radial = rows["simple-radial"]["out"]
@@ -85,17 +89,13 @@ def train_three(rows: dict, args) -> dict:
     out = {}
     for name, ds in datasets.items():
         run = Path(args.work) / ("run_" + name.replace(", ", "_").replace(" ", "_"))
-        done = (args.reuse_runs and (run / "metrics.json").is_file()
+        done = (args.reuse_runs and (run / "checkpoint.pt").is_file()
                 and load_checkpoint(run / "checkpoint.pt", "cpu")["iteration"] == args.train)
-        t0 = time.perf_counter()
-        if done:
-            out[name] = json.loads((run / "metrics.json").read_text())
-        else:
+        if not done:
             shutil.rmtree(run, ignore_errors=True)
             train(TrainConfig(dataset=str(ds), iters=args.train, resolution=args.resolution, device="cpu", seed=0),
                   run, progress=False, log=lambda *a: None)
-            out[name] = evaluate(run, device="cpu", progress=False)
-        out[name]["seconds"] = time.perf_counter() - t0
+        out[name] = evaluate_both(run)
     return out
 
 
@@ -119,11 +119,14 @@ def main() -> None:
               f"{r['full']['ctr_med']:12.3f} {r['wall_s']:9.1f}")
     if args.train:
         metrics = train_three(rows, args)
-        print(f"\ntrained {args.train} iterations at width {args.resolution}, seed 0, CPU; held-out views vs their "
-              "own reconstructions")
-        print(f"{'dataset':20} {'PSNR':>7} {'SSIM':>6} {'views':>6} {'s':>7}")
+        print(f"\ntrained {args.train} iterations at width {args.resolution}, seed 0, CPU; held-out views vs the "
+              "ground truth (truth) and vs their own reconstructions (recon)")
+        print(f"{'dataset':20} {'PSNR truth':>10} {'object':>7} {'SSIM':>6} {'PSNR recon':>10} {'SSIM':>6} "
+              f"{'views':>6} {'train s':>8}")
         for name, m in metrics.items():
-            print(f"{name:20} {m['psnr']:7.2f} {m['ssim']:6.3f} {len(m.get('per_view', [])):>6} {m['seconds']:7.0f}")
+            t, r = m.get("truth"), m["reconstruction"]
+            truth = f"{t['psnr']:10.2f} {t['psnr_object']:7.2f} {t['ssim']:6.3f}" if t else f"{'-':>10} {'-':>7} {'-':>6}"
+            print(f"{name:20} {truth} {r['psnr']:10.2f} {r['ssim']:6.3f} {r['views']:>6} {r['train_seconds']:8.0f}")
         print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 

@@ -365,3 +365,130 @@ def test_the_radial_camera_model_writes_k1_and_the_trainer_reads_it(handheld_cap
 
     assert load_dataset(tmp_path / "simple-radial").camera(200, 320)[4] == doc["k1"]  # the trainer's rays use it
     assert len(load_dataset(tmp_path / "simple-pinhole").camera(200, 320)) == 4
+
+
+# ---------------------------------------------------------------------- a capture whose truth is known
+def _truth_capture(tmp_path, n=9, w=24, h=16):
+    """``n`` spike streams of a bright square and, beside them, each view's true image (RGBA PNG,
+    the object on a transparent background) in another folder."""
+    from spikegen.spikeio import write_png
+
+    cap, truth = tmp_path / "cap", tmp_path / "truth"
+    cap.mkdir()
+    truth.mkdir()
+    rng = np.random.default_rng(0)
+    for i in range(n):
+        p = np.full((h, w), 0.1)
+        p[4:12, 6 + i % 3:14 + i % 3] = 0.6
+        write_npz(cap / f"r_{i}.npz", (rng.random((64, h, w)) < p).astype(np.uint8))
+        img = np.zeros((h, w, 4), np.uint8)
+        img[4:12, 6:14] = (40 + 20 * i, 40 + 20 * i, 40 + 20 * i, 255)
+        write_png(truth / f"r_{i}.png", img)
+    return cap, truth
+
+
+def _fake_sfm(monkeypatch, n):
+    """Structure from motion replaced by a known answer (every view registered; cameras on a small
+    patch looking down -Z at points 4 units away), so the import's writing is tested without pycolmap."""
+    class FakeColmap:
+        __version__ = "fake"
+
+    def result(rec, names):
+        poses = np.repeat(np.eye(4)[None], len(names), axis=0)
+        poses[:, 0, 3] = 0.05 * np.arange(len(names))
+        pts = np.random.default_rng(1).uniform([-1, -1, -5], [1, 1, -3], (50, 3))
+        return im.SfmResult(tuple(names), poses, tuple(pts for _ in names), im.Intrinsics(30.0, 30.0, 12.0, 8.0, 24, 16))
+
+    monkeypatch.setattr(im, "_pycolmap", lambda: FakeColmap)
+    monkeypatch.setattr(im, "run_sfm", lambda *a, **k: None)
+    monkeypatch.setattr(im, "sfm_result", result)
+
+
+def test_truth_images_are_copied_named_and_scored_against(tmp_path, capsys, monkeypatch):
+    from spikegen.spikeio import png_to_radiance, read_png
+    from spikenerf.config import TrainConfig
+    from spikenerf.data import has_ground_truth, load_dataset
+    from spikenerf.eval import evaluate, reference
+    from spikenerf.train import train
+
+    cap, truth = _truth_capture(tmp_path)
+    _fake_sfm(monkeypatch, 9)
+    code, _, err = run(["import", cap, "--size", "24x16", "--out", tmp_path / "ds", "--truth-images", truth], capsys)
+    assert code == 0, err
+    assert run(["import", cap, "--size", "24x16", "--out", tmp_path / "plain"], capsys)[0] == 0
+    doc = json.loads((tmp_path / "ds" / "transforms_train.json").read_text())
+    for f in doc["frames"]:
+        i = f["file_path"].split("_")[-1]
+        assert f["ground_truth_path"] == f"./train/r_{i}_truth.png" and f["image_kind"] == "reconstruction"
+        assert (tmp_path / "ds" / "train" / f"r_{i}_truth.png").read_bytes() == (truth / f"r_{i}.png").read_bytes()
+    params = json.loads((tmp_path / "ds" / "manifest.json").read_text())["parameters"]
+    assert len(params["truth_images"]) == 64  # a sha256
+    plain = json.loads((tmp_path / "plain" / "transforms_train.json").read_text())
+    assert all("ground_truth_path" not in f for f in plain["frames"])
+    assert "truth_images" not in json.loads((tmp_path / "plain" / "manifest.json").read_text())["parameters"]
+    assert run(["verify", tmp_path / "ds"], capsys)[0] == 0  # the manifest covers the truth images
+    (tmp_path / "ds" / "train" / "r_1_truth.png").write_bytes(b"")
+    assert run(["verify", tmp_path / "ds"], capsys)[0] != 0
+    (tmp_path / "ds" / "train" / "r_1_truth.png").write_bytes((truth / "r_1.png").read_bytes())
+
+    ds = load_dataset(tmp_path / "ds")
+    view = ds.splits["test"][0]  # r_0, held out
+    assert has_ground_truth(view) and not has_ground_truth(load_dataset(tmp_path / "plain").splits["test"][0])
+    kind, x, alpha = reference(ds, view, 16, 24)
+    want_x, want_alpha = png_to_radiance(read_png(truth / "r_0.png"))
+    assert kind == "ground truth" and np.allclose(x, want_x, atol=1e-6) and np.array_equal(alpha, want_alpha)
+    assert reference(ds, view, 16, 24, "reconstruction")[0] == "reconstruction"
+
+    for name in ("ds", "plain"):
+        train(TrainConfig(dataset=str(tmp_path / name), iters=2, device="cpu", batch_rays=64),
+              tmp_path / f"run_{name}", progress=False, log=lambda *a: None)
+    assert evaluate(tmp_path / "run_ds", device="cpu", progress=False)["compared_with"] == "ground truth"
+    m = evaluate(tmp_path / "run_ds", device="cpu", progress=False, compare_with="reconstruction")
+    assert m["compared_with"] == "reconstruction"
+    from click.testing import CliRunner
+    from spikenerf.cli import main as trainer_main
+
+    res = CliRunner().invoke(trainer_main, ["eval", str(tmp_path / "run_plain"), "--compare-with", "truth", "--quiet"])
+    assert res.exit_code != 0 and "no ground-truth image" in res.output and len(res.output.strip().splitlines()) == 1
+    assert not (tmp_path / "run_plain" / "metrics.json").exists()
+
+
+def test_truth_images_missing_or_of_another_size_are_one_line_and_write_nothing(tmp_path, capsys, monkeypatch):
+    from spikegen.spikeio import write_png
+
+    cap, truth = _truth_capture(tmp_path, n=4)
+    _fake_sfm(monkeypatch, 4)
+    (truth / "r_2.png").unlink()
+    code, _, err = run(["import", cap, "--size", "24x16", "--out", tmp_path / "ds", "--truth-images", truth], capsys)
+    assert code != 0 and "no r_2.png for spike file r_2.npz" in err and len(err.strip().splitlines()) == 1
+    write_png(truth / "r_2.png", np.zeros((8, 24), np.uint8))
+    code, _, err = run(["import", cap, "--size", "24x16", "--out", tmp_path / "ds", "--truth-images", truth], capsys)
+    assert code != 0 and "24x8 image, the capture is 24x16" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "ds").exists()
+
+
+def test_an_imported_capture_is_scored_against_its_truth_in_the_truth_s_units(tmp_path, capsys, monkeypatch):
+    """An import's units are its own; eval relates them to the ground truth's by one gain fitted on the
+    training views. Truth images made as half of each view's reconstruction give a gain of 0.5."""
+    from spikegen.spikeio import linear_to_srgb, write_png
+    from spikenerf.config import TrainConfig
+    from spikenerf.data import load_dataset
+    from spikenerf.eval import evaluate, reference, truth_gain
+    from spikenerf.train import train
+
+    cap, truth = _truth_capture(tmp_path)
+    _fake_sfm(monkeypatch, 9)
+    assert run(["import", cap, "--size", "24x16", "--out", tmp_path / "plain"], capsys)[0] == 0
+    plain = load_dataset(tmp_path / "plain")
+    for v in plain.splits["train"] + plain.splits["test"]:
+        x = reference(plain, v, 16, 24, "reconstruction")[1]
+        write_png(truth / f"{v.name.split('/')[-1]}.png", linear_to_srgb(np.clip(0.5 * x, 0, 1)))
+    code, _, err = run(["import", cap, "--size", "24x16", "--out", tmp_path / "ds", "--truth-images", truth], capsys)
+    assert code == 0, err
+    ds = load_dataset(tmp_path / "ds")
+    assert truth_gain(ds, 16, 24) == pytest.approx(0.5, abs=0.01)
+    train(TrainConfig(dataset=str(tmp_path / "ds"), iters=2, device="cpu", batch_rays=64), tmp_path / "run",
+          progress=False, log=lambda *a: None)
+    m = evaluate(tmp_path / "run", device="cpu", progress=False)
+    assert m["compared_with"] == "ground truth" and m["truth_gain"] == pytest.approx(0.5, abs=0.01)
+    assert "truth_gain" not in evaluate(tmp_path / "run", device="cpu", progress=False, compare_with="reconstruction")

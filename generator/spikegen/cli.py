@@ -105,13 +105,16 @@ def verify(dataset):
               help="Image per view: TFP over the whole stream, or TFI at the middle frame (docs/real_captures.md).")
 @click.option("--camera-model", type=click.Choice(["simple-pinhole", "simple-radial"]), default="simple-pinhole",
               show_default=True, help="COLMAP camera: one focal length, and with simple-radial a radial lens k1.")
-def import_(capture, size, out_dir, calibration, frames, reconstruction, camera_model):
+@click.option("--truth-images", type=click.Path(path_type=Path), default=None,
+              help="Folder with the true image <stem>.png of every spike file (a synthetic capture): held-out "
+                   "views are then scored against it.")
+def import_(capture, size, out_dir, calibration, frames, reconstruction, camera_model, truth_images):
     """A folder of real spike recordings, one file per viewpoint, as a dataset folder with poses and
     intrinsics from structure from motion (pycolmap)."""
     from .importer import import_capture
 
     click.echo(str(import_capture(capture, _size(size), out_dir, calibration, frames, reconstruction,
-                                  camera_model=camera_model)))
+                                  camera_model=camera_model, truth_images=truth_images)))
 
 
 # ---------------------------------------------------------------------- info / preview

@@ -176,6 +176,13 @@ class ViewRecord:
     def spikes(self) -> Path | None:
         return None if self.spike_path is None else self._root() / self.spike_path
 
+    @property
+    def truth_png(self) -> Path | None:
+        """An imported view's ground-truth image (``"ground_truth_path"``, a capture whose truth is
+        known: ``spikegen import --truth-images``); None when the frame names none."""
+        path = self.extra.get(GROUND_TRUTH_KEY)
+        return None if path is None else self._root() / path
+
     def _root(self) -> Path:
         return Path(".") if self.root is None else Path(self.root)
 
@@ -446,6 +453,9 @@ class Transforms:
                 return [f"{path} frame {i}: no spike_path"]
             if not f.is_file():
                 return [f"{path} frame {i}: spike file {v.spike_path} is missing"]
+            truth = v.extra.get(GROUND_TRUTH_KEY)
+            if truth is not None and not (isinstance(truth, str) and v.truth_png.is_file()):
+                return [f"{path} frame {i}: ground-truth image {truth!r} is missing"]
             if f.suffix == ".dat" and f.stat().st_size != self.spike.dat_bytes:
                 return [f"{path} frame {i}: {v.spike_path} is {f.stat().st_size} bytes, but the spike block says "
                         f"{self.spike.frames} frames of {self.spike.width}x{self.spike.height} "
@@ -593,11 +603,17 @@ class ConvertTask:
 # ---------------------------------------------------------------------- real captures (spikegen import)
 POSES_FROM_COLMAP = "colmap"  # transforms "poses_from": structure from motion with pycolmap
 IMAGE_KIND_RECONSTRUCTION = "reconstruction"  # a frame's PNG was reconstructed from its own spikes
-CAPTURE_FRAME_KEYS = ("image_kind", "near", "far")  # keys of an imported frame kept in ViewRecord.extra
+GROUND_TRUTH_KEY = "ground_truth_path"  # an imported frame's true image (a synthetic capture), beside its reconstruction
+CAPTURE_FRAME_KEYS = ("image_kind", "near", "far", GROUND_TRUTH_KEY)  # keys of an imported frame kept in ViewRecord.extra
 INTRINSICS_KEYS = ("fl_x", "fl_y", "cx", "cy", "w", "h")
 LENS_CAMERA_MODEL = "OPENCV"  # transforms "camera_model" when k1 != 0 (nerfstudio's name; k2, p1, p2 = 0)
 UNMODELLED_LENS_KEYS = ("k2", "k3", "k4", "p1", "p2")  # OpenCV coefficients a transforms file may carry
 RECONSTRUCTIONS = ("tfi", "tfp")  # spikegen.recon methods an import can write as the views' images
+
+
+def truth_name(file_path: str) -> str:
+    """Where an imported view's ground-truth image lives: ``./train/r_0`` -> ``./train/r_0_truth.png``."""
+    return file_path + "_truth.png"
 
 
 @dataclass(frozen=True)
@@ -674,12 +690,15 @@ class ImportParams(_Parameters):
     seed: int = 0  # pycolmap's random seed
     readout_hz: int = READOUT_HZ
     camera_model: str = "SIMPLE_PINHOLE"  # COLMAP's camera model of the reconstruction
+    truth_images: str | None = None  # sha256 of the ground-truth PNGs' bytes in view order (None: none given)
 
     def to_json(self) -> dict:
         d = dataclasses.asdict(self)
         d["files"] = list(self.files)
         if self.camera_model == "SIMPLE_PINHOLE":  # the manifests written before the choice existed keep their bytes
             del d["camera_model"]
+        if self.truth_images is None:  # as camera_model: a folder imported without truth keeps its bytes
+            del d["truth_images"]
         return d
 
 
@@ -702,11 +721,13 @@ class CaptureTransforms:
     reconstruction: str
     unregistered: tuple = ()  # spike files whose view COLMAP could not register
     poses_from: str = POSES_FROM_COLMAP
+    ground_truth: bool = False  # each view has ``<file_path>_truth.png`` (spikegen import --truth-images)
 
     def to_json(self) -> dict:
         base = Transforms(self.intrinsics.camera_angle_x, self.spike, self.frames).to_json()
         frames = [{**fr, "image_kind": IMAGE_KIND_RECONSTRUCTION, "reconstruction": self.reconstruction,
-                   "source_file": src, "near": float(b[0]), "far": float(b[1])}
+                   "source_file": src, "near": float(b[0]), "far": float(b[1]),
+                   **({GROUND_TRUTH_KEY: truth_name(fr["file_path"])} if self.ground_truth else {})}
                   for fr, src, b in zip(base["frames"], self.sources, self.bounds_m)]
         return {"camera_angle_x": base["camera_angle_x"], **self.intrinsics.to_json(),
                 "poses_from": self.poses_from, "normalising_transform": self.normalisation.tolist(),

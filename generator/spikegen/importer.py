@@ -16,6 +16,12 @@ A ``.dat`` without a header is read at ``--size``; one whose rows carry :data:`H
 extra leading columns (a 416-wide file for a 400-wide sensor, as some cameras write) is
 recognised by its size and those columns dropped. Views COLMAP does not register are left out
 and named; fewer than :data:`MIN_REGISTERED` registered is an error and nothing is left.
+
+``--truth-images DIR`` (a capture whose truth is known, e.g. a synthetic one made by ``spikegen
+render --rig handheld``): ``DIR/<stem>.png`` for every spike file ``<stem>.dat`` is the image the
+camera saw (the NeRF-synthetic PNG convention, dataset.md), copied byte for byte to
+``train/r_N_truth.png`` and named in its frame as ``"ground_truth_path"``; ``spikenerf eval`` then
+scores held-out views against it. Structure from motion never sees it.
 """
 from __future__ import annotations
 
@@ -294,7 +300,7 @@ def view_bounds(c2w: np.ndarray, points: np.ndarray, m: np.ndarray) -> tuple[flo
 # ---------------------------------------------------------------------- the whole import
 def import_capture(capture, size, out, calibration=None, frames: int | None = None,
                    reconstruction: str = DEFAULT_RECONSTRUCTION, progress: bool = True,
-                   camera_model: str = DEFAULT_CAMERA_MODEL) -> Path:
+                   camera_model: str = DEFAULT_CAMERA_MODEL, truth_images=None) -> Path:
     """Write the dataset folder ``out`` from the spike files in ``capture``; returns ``out``.
 
     Everything about the input is checked before anything is written. An error after that (no
@@ -310,18 +316,21 @@ def import_capture(capture, size, out, calibration=None, frames: int | None = No
     files = list_capture(capture, size)
     frames = _frames(files, frames)
     sensor, digest = _calibration(calibration, size)
+    truths = _truth_images(truth_images, files, size)
     params = ImportParams(Path(capture).resolve().name, tuple(f.path.name for f in files), size[0], size[1], frames,
                           reconstruction, digest, _pycolmap().__version__, SFM_SEED,
-                          camera_model=CAMERA_MODELS[camera_model])
+                          camera_model=CAMERA_MODELS[camera_model], truth_images=_digest(truths))
     created = not out.exists()
     _claim(out, params)
     try:
         rate99 = write_views(files, size, frames, reconstruction, sensor, out, progress)
+        for i, path in enumerate(truths or ()):
+            write_bytes_atomic(out / "train" / f"r_{i}_truth.png", path.read_bytes())
         names = [f"r_{i}.png" for i in range(len(files))]
         sfm = sfm_result(run_sfm(out / "train", names, progress, camera_model), names)
         _check_registered(sfm, files, capture)
         with tqdm(total=1, desc="write", disable=not progress) as bar:
-            _write_dataset(out, params, sfm, files, rate99, sensor)
+            _write_dataset(out, params, sfm, files, rate99, sensor, truths is not None)
             bar.update()
     except (InputError, OutputError):
         if created:
@@ -340,6 +349,37 @@ def _frames(files, frames) -> int:
     if short:
         raise InputError(f"{short[0].path}: holds {short[0].frames} frames, fewer than --frames {frames}")
     return int(frames)
+
+
+def _truth_images(folder, files, size) -> list[Path] | None:
+    """``folder/<stem>.png`` for every spike file, each checked to be a PNG of the capture's size;
+    None without ``folder``."""
+    if folder is None:
+        return None
+    from .spikeio import read_png
+
+    folder = Path(folder)
+    if not folder.is_dir():
+        raise InputError(f"--truth-images {folder}: not a folder")
+    out = []
+    for f in files:
+        path = folder / (f.path.stem + ".png")
+        if not path.is_file():
+            raise InputError(f"--truth-images {folder}: no {path.name} for spike file {f.path.name}")
+        shape = read_png(path).shape[:2]
+        if shape != (size[1], size[0]):
+            raise InputError(f"{path}: {shape[1]}x{shape[0]} image, the capture is {size[0]}x{size[1]}")
+        out.append(path)
+    return out
+
+
+def _digest(paths) -> str | None:
+    if paths is None:
+        return None
+    h = hashlib.sha256()
+    for path in paths:
+        h.update(path.read_bytes())
+    return h.hexdigest()
 
 
 def _calibration(prefix, size) -> tuple[Sensor, str | None]:
@@ -362,7 +402,8 @@ def _check_registered(sfm: SfmResult, files, capture) -> None:
                          f"(at least {MIN_REGISTERED} are needed); nothing written")
 
 
-def _write_dataset(out: Path, params: ImportParams, sfm: SfmResult, files, rate99: float, sensor: Sensor) -> None:
+def _write_dataset(out: Path, params: ImportParams, sfm: SfmResult, files, rate99: float, sensor: Sensor,
+                   ground_truth: bool = False) -> None:
     """Stage 3: transforms_train.json, sensor, config.yaml and manifest.json; unregistered views' files removed."""
     m = normalise(sfm.c2w_gl, sfm.points)
     poses = apply_normalisation(m, sfm.c2w_gl)
@@ -375,7 +416,7 @@ def _write_dataset(out: Path, params: ImportParams, sfm: SfmResult, files, rate9
     _remove_unregistered(out / "train", index, len(files))
     spike = SpikeBlock(params.height, params.width, params.frames, 1, max(256.0 * rate99, 1e-3), background=None)
     doc = CaptureTransforms(sfm.intrinsics, spike, views, bounds, tuple(files[i].path.name for i in index), m,
-                            params.reconstruction, left_out)
+                            params.reconstruction, left_out, ground_truth=ground_truth)
     write_json_atomic(out / "transforms_train.json", doc.to_json())
     save_sensor(sensor, out / "sensor")
     write_bytes_atomic(out / CONFIG_YAML, spikecv_config(spike, [v.name + ".dat" for v in views]).encode())
@@ -385,7 +426,7 @@ def _write_dataset(out: Path, params: ImportParams, sfm: SfmResult, files, rate9
 def _remove_unregistered(folder: Path, registered: list[int], count: int) -> None:
     """Remove the files of views that are not in the dataset (a rerun makes and removes them again)."""
     for i in sorted(set(range(count)) - set(registered)):
-        for ext in (".dat", ".png"):
+        for ext in (".dat", ".png", "_truth.png"):
             (folder / f"r_{i}{ext}").unlink(missing_ok=True)
 
 

@@ -9,7 +9,7 @@ import click
 
 from spikegen.errors import SpikegenError
 
-from .config import ITERS_AT, SPACES, TrainConfig
+from .config import COMPARE_WITH, ITERS_AT, SPACES, TrainConfig
 from .methods import DEFAULT_METHOD, METHODS
 
 
@@ -100,9 +100,11 @@ def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, 
 @click.option("--split", default="test", show_default=True)
 @click.option("--device", default="auto", show_default=True, type=click.Choice(["auto", "cpu", "cuda"]))
 @click.option("--quiet", is_flag=True)
-def eval_cmd(run, split, device, quiet):
+@click.option("--compare-with", "compare_with", type=click.Choice(COMPARE_WITH), default="auto", show_default=True,
+              help="auto: each view's ground truth where it has one, else its long-window reconstruction.")
+def eval_cmd(run, split, device, quiet, compare_with):
     """Render the held-out views of RUN and write RUN/metrics.json and images."""
-    _eval(run, split, device, quiet)
+    _eval(run, split, device, quiet, compare_with)
 
 
 @main.command("render")
@@ -141,12 +143,13 @@ def render_cmd(run, path_name, frames, out, fps, device, quiet):
     click.echo(f"{out}: {n} frames ({path_name}, {fps:g} fps)")
 
 
-def _eval(run, split, device, quiet):
+def _eval(run, split, device, quiet, compare_with="auto"):
     from .eval import evaluate
 
-    m = evaluate(run, split, device=device, progress=not quiet)
-    click.echo(f"{run}/metrics.json: {m['views']} views, PSNR {m['psnr']:.2f} dB (object {m['psnr_object']:.2f}), "
-               f"SSIM {m['ssim']:.3f} (object {m['ssim_object']:.3f}), LPIPS {m['lpips']}")
+    m = evaluate(run, split, device=device, progress=not quiet, compare_with=compare_with)
+    click.echo(f"{run}/metrics.json: {m['views']} views against their {m['compared_with']}, PSNR {m['psnr']:.2f} dB "
+               f"(object {m['psnr_object']:.2f}), SSIM {m['ssim']:.3f} (object {m['ssim_object']:.3f}), "
+               f"LPIPS {m['lpips']}")
 
 
 if __name__ == "__main__":

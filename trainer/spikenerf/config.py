@@ -9,6 +9,7 @@ from .methods import DEFAULT_METHOD
 
 
 SPACES = ("cube", "auto", "ndc")  # TrainConfig.space
+COMPARE_WITH = ("auto", "truth", "reconstruction")  # spikenerf eval --compare-with (eval.reference)
 
 # The default iteration count at two image sizes, chosen on the project's procedural lego (spikelik,
 # i64, 48 train views, scored on its 8 val views; docs/trainer.md "Iterations"), never on the real

@@ -71,8 +71,9 @@ class Dataset:
 
 
 def has_ground_truth(view: ViewRecord) -> bool:
-    """A view's PNG is a rendering of the scene (not an image reconstructed from its own spikes)."""
-    return view.extra.get("image_kind") != IMAGE_KIND_RECONSTRUCTION
+    """A view has a rendering of the scene: its PNG (not an image reconstructed from its own spikes),
+    or an imported view's ``ground_truth_path``."""
+    return view.truth_png is not None or view.extra.get("image_kind") != IMAGE_KIND_RECONSTRUCTION
 
 
 def load_dataset(root) -> Dataset:
@@ -153,8 +154,9 @@ def read_view_spikes(ds: Dataset, view: ViewRecord) -> np.ndarray:
 
 
 def ground_truth(view: ViewRecord, height: int, width: int) -> tuple[np.ndarray, np.ndarray]:
-    """(linear luminance on white [H, W], alpha [H, W]) of a view's PNG, area-resized if needed."""
-    x, alpha = spikeio.png_to_radiance(spikeio.read_png(view.png))
+    """(linear luminance on white [H, W], alpha [H, W]) of a view's ground-truth PNG (its
+    ``ground_truth_path``, else its own PNG), area-resized if needed."""
+    x, alpha = spikeio.png_to_radiance(spikeio.read_png(view.truth_png or view.png))
     if x.shape != (height, width):
         x, alpha = area_resize(x, height, width), area_resize(alpha, height, width)
     return x.astype(np.float32), alpha.astype(np.float32)
