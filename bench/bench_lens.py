@@ -11,14 +11,19 @@ scored against TRUTH as bench_import.py does (``spikegen.importer.pose_errors``:
 centre-only and the full-pose similarity); both imports carry the capture's true images
 (``--truth-images CAPTURE``: ``spikegen convert`` writes each view's ``r_N.png`` beside its spikes,
 warped through the same lens). With ``--train``, the default method is trained (CPU, seed 0,
-``--resolution`` wide) on three datasets and scored on their held-out views (every 8th registered
-view, each rendered at its imported pose; ``spikenerf eval``) twice: against the ground truth, and
+``--resolution`` wide) on five datasets and scored on their held-out views (every 8th registered
+view, each rendered at its dataset's pose; ``spikenerf eval``) twice: against the ground truth, and
 against each view's own long-window reconstruction (``bench_import.evaluate_both``):
 
 - **radial, k1 used**: the simple-radial import as written; the trainer undistorts every pixel's ray;
 - **radial, k1 dropped**: the same folder with ``k1`` removed from its transforms (same poses, same
   focal length, pinhole rays): what ignoring the lens costs the field;
-- **pinhole import**: the simple-pinhole import (SfM's pinhole compromise of poses and focal length).
+- **pinhole import**: the simple-pinhole import (SfM's pinhole compromise of poses and focal length);
+- **true camera, k1 used**: the simple-radial import with the true camera in place of SfM's
+  (``bench_import.true_pose_dataset``: the true poses moved into the import's frame, the true focal
+  length and principal point) and the lens the capture was converted through (its ``k1``): what
+  the trainer makes of a perfectly known lens;
+- **true camera, k1 dropped**: the same without ``k1``.
 
 A rerun imports again (the import is deterministic) and, with ``--reuse-runs``, keeps trained runs
 (and evaluates them again).
@@ -38,7 +43,7 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO / "generator"), str(REPO / "trainer"), str(REPO / "bench")]
 
-from bench_import import evaluate_both, scene_depth, summarise, true_poses, truth_images  # noqa: E402
+from bench_import import evaluate_both, scene_depth, summarise, true_pose_dataset, true_poses, truth_images  # noqa: E402
 from spikegen.cli import _size as parse_size  # noqa: E402
 from spikegen.importer import import_capture, pose_errors  # noqa: E402
 
@@ -57,7 +62,7 @@ def import_both(args) -> dict:
         index = [int(Path(f["source_file"]).stem.split("_")[-1]) for f in doc["frames"]]
         truth = true_poses(Path(args.truth))[index]
         est = np.array([f["transform_matrix"] for f in doc["frames"]])
-        rows[model] = {"out": out, "registered": len(index), "views": len(index) + len(doc["unregistered"]),
+        rows[model] = {"out": out, "truth": truth, "registered": len(index), "views": len(index) + len(doc["unregistered"]),
                        "fl_x": doc["fl_x"], "k1": doc.get("k1", 0.0), "wall_s": time.perf_counter() - t0,
                        **summarise(pose_errors(est, truth, scene_depth(truth)))}
     return rows
@@ -78,14 +83,35 @@ def without_k1(folder: Path, out: Path) -> Path:
     return out
 
 
-def train_three(rows: dict, args) -> dict:
+def with_k1(folder: Path, k1: float) -> Path:
+    """``folder``'s transforms with the lens ``k1`` (0: none) in place of whatever it had."""
+    path = folder / "transforms_train.json"
+    doc = json.loads(path.read_text())
+    doc.pop("k1", None)
+    doc.pop("camera_model", None)
+    if k1:
+        doc.update(camera_model="OPENCV", k1=k1)
+    path.write_text(json.dumps(doc, indent=1))
+    return folder
+
+
+def true_camera(rows: dict, args, k1: float, name: str) -> Path:
+    """The simple-radial import with the true poses and pinhole intrinsics (bench_import) and lens ``k1``."""
+    row = rows["simple-radial"]
+    return with_k1(true_pose_dataset(row["out"], Path(args.truth), row, Path(args.work) / name), k1)
+
+
+def train_all(rows: dict, args) -> dict:
     from spikenerf.config import TrainConfig
     from spikenerf.train import load_checkpoint, train
 
     radial = rows["simple-radial"]["out"]
+    lens_k1 = json.loads((Path(args.capture).parent / "transforms_train.json").read_text()).get("k1", 0.0)
     datasets = {"radial, k1 used": radial,
                 "radial, k1 dropped": without_k1(radial, Path(args.work) / "simple-radial_no_k1"),
-                "pinhole import": rows["simple-pinhole"]["out"]}
+                "pinhole import": rows["simple-pinhole"]["out"],
+                "true camera, k1 used": true_camera(rows, args, lens_k1, "true_camera"),
+                "true camera, k1 dropped": true_camera(rows, args, 0.0, "true_camera_no_k1")}
     out = {}
     for name, ds in datasets.items():
         run = Path(args.work) / ("run_" + name.replace(", ", "_").replace(" ", "_"))
@@ -105,7 +131,7 @@ def main() -> None:
     ap.add_argument("--size", required=True)
     ap.add_argument("--truth", required=True)
     ap.add_argument("--work", required=True)
-    ap.add_argument("--train", type=int, default=0, help="Also train ITERS iterations on the three datasets.")
+    ap.add_argument("--train", type=int, default=0, help="Also train ITERS iterations on the five datasets.")
     ap.add_argument("--resolution", type=int, default=200, help="Training width (with --train).")
     ap.add_argument("--reuse-runs", action="store_true")
     args = ap.parse_args()
@@ -118,15 +144,15 @@ def main() -> None:
               f"{r['ctr']['rot_med']:10.3f} {r['ctr']['ctr_med']:12.3f} {r['full']['rot_med']:10.3f} "
               f"{r['full']['ctr_med']:12.3f} {r['wall_s']:9.1f}")
     if args.train:
-        metrics = train_three(rows, args)
+        metrics = train_all(rows, args)
         print(f"\ntrained {args.train} iterations at width {args.resolution}, seed 0, CPU; held-out views vs the "
               "ground truth (truth) and vs their own reconstructions (recon)")
-        print(f"{'dataset':20} {'PSNR truth':>10} {'object':>7} {'SSIM':>6} {'PSNR recon':>10} {'SSIM':>6} "
+        print(f"{'dataset':24} {'PSNR truth':>10} {'object':>7} {'SSIM':>6} {'PSNR recon':>10} {'SSIM':>6} "
               f"{'views':>6} {'train s':>8}")
         for name, m in metrics.items():
             t, r = m.get("truth"), m["reconstruction"]
             truth = f"{t['psnr']:10.2f} {t['psnr_object']:7.2f} {t['ssim']:6.3f}" if t else f"{'-':>10} {'-':>7} {'-':>6}"
-            print(f"{name:20} {truth} {r['psnr']:10.2f} {r['ssim']:6.3f} {r['views']:>6} {r['train_seconds']:8.0f}")
+            print(f"{name:24} {truth} {r['psnr']:10.2f} {r['ssim']:6.3f} {r['views']:>6} {r['train_seconds']:8.0f}")
         print(f"load average {' '.join(f'{x:.2f}' for x in os.getloadavg())}")
 
 
