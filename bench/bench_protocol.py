@@ -12,7 +12,9 @@ and seed ``spikenerf train`` and ``spikenerf eval``. Each finished run becomes o
 ``bench/results/protocol.jsonl``: what it was (data, sensor, intensity, method, what the method knows
 of the sensor, resolution, seed, iterations, frames, device), what it cost (train seconds, wall
 seconds, the load average) and every metric (means and per view). A run already in the file is
-skipped, so a long table is completed over several sessions; work folders live in ``--out``.
+skipped, so a long table is completed over several sessions; work folders live in ``--out``, and a
+run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
+resumed from; its wall_seconds are this session's only; train_seconds add up over sessions).
 ``--calibrated`` adds, for every method that uses the sensor's maps, a run with the maps of
 ``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
 real camera has) instead of the dataset's true maps. No setting is chosen here: every method runs
@@ -117,6 +119,7 @@ def run_one(folder: Path, cell: dict, args) -> dict:
         cmd += ["--frames", str(cell["frames"])]
     if cell["knowledge"] == "calibrated maps":
         cmd += ["--sensor-maps", str(calibration(cell["sensor"], args))]
+    resumed = _checkpoint_iteration(run)
     load0, t0 = os.getloadavg()[0], time.perf_counter()
     _run(cmd)
     _run(["spikenerf", "eval", str(run), "--device", args.device, "--quiet"])
@@ -128,7 +131,18 @@ def run_one(folder: Path, cell: dict, args) -> dict:
             "wall_seconds": round(wall, 1), "load_average": [round(load0, 2), round(os.getloadavg()[0], 2)],
             "views_from": m.get("views_from"), "metrics": {k: v for k, v in m.items() if _metric(k)},
             "per_view": [{k: v for k, v in r.items() if k == "view" or _metric(k)} for r in per_view],
-            "commit": _commit(), "date": datetime.date.today().isoformat()}
+            "commit": _commit(), "date": datetime.date.today().isoformat(),
+            **({"resumed_at": resumed} if resumed is not None else {})}
+
+
+def _checkpoint_iteration(run: Path) -> int | None:
+    """The iteration of a checkpoint an interrupted session left in the run folder (``spikenerf train``
+    resumes from it; the row's wall_seconds then covers only this session's part), or None."""
+    ckpt = run / "checkpoint.pt"
+    if not ckpt.is_file():
+        return None
+    import torch
+    return int(torch.load(ckpt, map_location="cpu", weights_only=False)["iteration"])
 
 
 def _metric(key: str) -> bool:

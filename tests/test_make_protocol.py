@@ -64,3 +64,32 @@ def test_missing_counts_only_runs_at_the_default_iteration_count():
     assert left(old + new + part) == 61
     note = make_protocol.iterations_note(old + new)
     assert "2 runs at the default 9000" in note and "3 at 3000" in note
+
+
+def test_scenes_table_puts_the_procedural_scenes_side_by_side():
+    """One line per method, one column per scene (mean over seeds, their number), the mean of the scene means
+    only when every scene has the method; other iteration counts, partial sequences and the real lego stay out."""
+    def row(data, method, knowledge, full, obj, seed=0, **kw):
+        r = {"resolution": 100, "data": data, "sensor": "rsir", "intensity": 64, "method": method,
+             "knowledge": knowledge, "seed": seed, "frames": 0, "iterations": 3000,
+             "metrics": {"psnr": full, "psnr_object": obj}}
+        return {**r, **kw}
+
+    rows = [row("chair", "spikelik", "true maps", 30.0 + s, 25.0 + s, seed=s) for s in range(3)]  # 31 / 26 (3)
+    rows += [row("mic", "spikelik", "true maps", 28.0, 24.0)]
+    rows += [row("chair", "tfp32", "none", 20.0, 18.0)]                                       # no mic run
+    rows += [row("chair", "spikelik", "true maps", 99.0, 99.0, iterations=9000),                # all left out
+             row("chair", "spikelik", "true maps", 99.0, 99.0, frames=64),
+             row("lego", "spikelik", "true maps", 99.0, 99.0)]
+    table = make_protocol.scenes_table(rows)
+    assert table[0] == "### rsir sensor, intensity 64, 100 x 100, 3000 iterations"
+    assert table[2] == "| method | knows | chair | mic | mean of the scene means |"
+    cells = lambda line: [c.strip() for c in line.split("|")[1:-1]]  # noqa: E731
+    lik = next(cells(x) for x in table if x.startswith("| spikelik"))
+    assert lik == ["spikelik", "true maps", "31.00 / 26.00 (3)", "28.00 / 24.00 (1)", "29.50 / 25.00"]
+    tfp = next(cells(x) for x in table if x.startswith("| tfp32"))
+    assert tfp == ["tfp32", "none", "20.00 / 18.00 (1)", "–", "–"]
+    assert lik and not any("99.00" in x for x in table)
+    gone = [x for x in make_protocol.missing(rows) if ", rsir, 100 x 100" in x and not x.startswith("- lego")]
+    assert any(x.startswith("- chair") and "5 of 9 runs (i64, method x seed)" in x for x in gone)
+    assert any(x.startswith("- ficus") and "9 of 9 runs" in x for x in gone)
