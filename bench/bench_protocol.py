@@ -132,6 +132,7 @@ def run_one(folder: Path, cell: dict, args) -> dict:
             "views_from": m.get("views_from"), "metrics": {k: v for k, v in m.items() if _metric(k)},
             "per_view": [{k: v for k, v in r.items() if k == "view" or _metric(k)} for r in per_view],
             "commit": _commit(), "date": datetime.date.today().isoformat(),
+            "windows": cfg.get("windows"),  # the resolved count windows (None: a run from before --windows)
             **({"resumed_at": resumed} if resumed is not None else {})}
 
 

@@ -55,8 +55,9 @@ def table(rows: list[dict]) -> str:
            "| SSIM full | object |", "|" + "---|" * 12]
     for r in rows:
         m = r["metrics"]
+        eval_s = "?" if r["eval_s"] is None else f"{r['eval_s']:.0f}"  # rows run by hand: not timed
         out.append(f"| {r['name']} | `{' '.join(r['options']) or '(defaults)'}` | {r['iterations']} | {r['train_s']:.0f} "
-                   f"| {r['eval_s']:.0f} | {_load(r['load'])} | {m['psnr']:.2f} | "
+                   f"| {eval_s} | {_load(r['load'])} | {m['psnr']:.2f} | "
                    f"{m['psnr_object']:.2f} | {m['psnr_object50']:.2f} | {m['psnr_background']:.2f} | {m['ssim']:.3f} "
                    f"| {m['ssim_object']:.3f} |")
     return "\n".join(out)

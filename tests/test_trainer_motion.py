@@ -58,7 +58,7 @@ def moving(tmp_path_factory):
 
 def test_windows_get_their_own_poses(moving):
     ds = load_dataset(moving)
-    tg = build_targets(ds, METHODS["spikelik"], SIZE, SIZE, progress=False)
+    tg = build_targets(ds, METHODS["spikelik"], SIZE, SIZE, progress=False, windows=8)
     n_train = len(ds.splits["train"])
     assert tg.values.shape == (8 * n_train, SIZE * SIZE) and np.all(tg.frames == 32)
     first, last = tg.poses[0], tg.poses[7]
@@ -74,3 +74,77 @@ def test_spikelik_trains_on_moving_views(moving, tmp_path):
     ck = train(cfg, tmp_path / "run", progress=False, log=lambda m: None)
     state = torch.load(ck, weights_only=False)
     assert state["iteration"] == 60 and torch.isfinite(state["state"]["grid"]).all()
+
+
+class _Stream:
+    """A view and its dataset as targets.image_motion_px reads them: a camera at distance 4 on the +z axis
+    looking at the origin, moved along ``move`` (world units, over the whole stream) in K sub-frames."""
+
+    def __init__(self, move, size=100, focal=140.0, frames=256, k=16):
+        base = np.eye(4)
+        base[2, 3] = 4.0
+        self.subframe_poses = np.stack([base.copy() for _ in range(k)])
+        for j in range(k):
+            self.subframe_poses[j, :3, 3] += np.asarray(move, float) * ((j + 0.5) / k - 0.5)
+        self.pose, self.frames, self.focal = base, frames, focal
+        self.splits = {"train": [self]}
+
+    def is_static(self):
+        return bool(np.abs(self.subframe_poses - self.subframe_poses[:1]).max() <= 1e-6)
+
+    def camera(self, height, width):
+        return self.focal * width / 100
+
+
+def test_image_motion_of_a_sideways_camera_is_focal_times_shift_over_depth():
+    """A camera sliding by d along its image plane moves every point at depth D by f d / D pixels; the
+    sub-frames sit at the centres of their slices, so the stream's ends see (K - 1) / K of the slide."""
+    from spikenerf.targets import image_motion_px
+
+    s = _Stream([0.04, 0.0, 0.0])
+    expect = 140.0 * 0.04 * (15 / 16) / 4.0
+    assert image_motion_px(s, s, 100, 100, 256) == pytest.approx(expect, rel=1e-6)
+    assert image_motion_px(s, s, 400, 400, 256) == pytest.approx(4 * expect, rel=1e-6)  # pixels follow the size
+    assert image_motion_px(s, s, 100, 100, 128) == pytest.approx(expect * (7.5 / 15), rel=1e-6)  # half the stream
+    assert image_motion_px(_Stream([0, 0, 0]), _Stream([0, 0, 0]), 100, 100, 256) == 0.0
+    behind = _Stream([0.04, 0, 0])
+    behind.pose = behind.pose @ np.diag([-1.0, 1.0, -1.0, 1.0])  # turned round: the origin is behind it
+    assert image_motion_px(behind, behind, 100, 100, 256) == float("inf")
+
+
+def test_auto_windows_follow_the_motion():
+    """The fewest windows that keep each one's motion within a pixel, capped by the method's count; an
+    explicit count wins; methods without count targets have one."""
+    from spikenerf.targets import MAX_WINDOW_BLUR_PX, count_windows, image_motion_px
+
+    lik = METHODS["spikelik"]
+    for shift in (0.004, 0.04, 0.1, 1.0):
+        s = _Stream([shift, 0, 0])
+        motion = image_motion_px(s, s, 100, 100, 256)
+        want = min(8, max(1, math.ceil(motion / MAX_WINDOW_BLUR_PX)))
+        assert count_windows(s, lik, 100, 100, 256) == want
+    assert count_windows(_Stream([0.004, 0, 0]), lik, 100, 100, 256) == 1
+    assert count_windows(_Stream([1.0, 0, 0]), lik, 100, 100, 256) == 8
+    assert count_windows(_Stream([0.004, 0, 0]), lik, 100, 100, 256, windows=4) == 4
+    assert count_windows(_Stream([0.004, 0, 0]), lik, 100, 100, 3, windows=4) == 3  # no more windows than frames
+    assert count_windows(_Stream([1.0, 0, 0]), METHODS["spikenerf"], 100, 100, 256) == 1
+    assert count_windows(_Stream([1.0, 0, 0]), METHODS["tfp32"], 100, 100, 256, windows=4) == 1
+    assert count_windows(_Stream([0, 0, 0]), lik, 100, 100, 256, windows=4) == 1  # static: one pose
+
+
+def test_windows_option_sets_the_targets_and_is_kept_on_resume(moving, tmp_path):
+    from spikegen.errors import InputError
+
+    ds = load_dataset(moving)
+    tg = build_targets(ds, METHODS["spikelik"], SIZE, SIZE, progress=False, windows=2)
+    assert tg.values.shape == (2 * len(ds.splits["train"]), SIZE * SIZE) and np.all(tg.frames == 128)
+    cfg = TrainConfig(dataset=str(moving), iters=20, device="cpu", batch_rays=256, grid_start=16, grid_final=24,
+                      windows=2)
+    train(cfg, tmp_path / "run", progress=False, log=lambda m: None, stop_at=10)
+    import json
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["windows"] == 2
+    with pytest.raises(InputError, match="windows=2"):
+        train(TrainConfig(**{**cfg.to_json(), "upsample_at": (0.1, 0.2, 0.3), "windows": 3}), tmp_path / "run",
+              progress=False, log=lambda m: None)
+    ck = train(cfg, tmp_path / "run", progress=False, log=lambda m: None)
+    assert torch.load(ck, weights_only=False)["iteration"] == 20

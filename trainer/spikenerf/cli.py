@@ -45,6 +45,9 @@ def main():
               help="Train at this width (must divide the dataset's); 0 = the dataset's.")
 @click.option("--frames", default=None, type=int,
               help="Train from the first W frames of each stream (1..the dataset's frames; default all).")
+@click.option("--windows", default=TrainConfig.windows, show_default=True, type=click.IntRange(min=0),
+              help="Count windows per view of a moving camera, each seen from its own pose (count methods only); "
+                   "0 = the fewest in which the image moves by at most a pixel.")
 @click.option("--sensor-maps", "sensor_maps", default="", type=click.Path(path_type=str),
               help="Take R and the dark current from this sensor .json (e.g. from `spikegen calibrate`) instead of "
                    "the dataset's own (true) maps.")
@@ -76,7 +79,7 @@ def main():
               help=f"Save a checkpoint every N iterations (and at least every {TrainConfig.checkpoint_every_s:g} s).")
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
-def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, seed, batch_rays, sh_degree,
+def train(dataset, method, iters, device, resolution, frames, windows, sensor_maps, out, seed, batch_rays, sh_degree,
           grid_final, fit_box, space, tv_weight, tv_points, lazy_above, checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
@@ -84,7 +87,7 @@ def train(dataset, method, iters, device, resolution, frames, sensor_maps, out, 
     dataset = dataset.resolve()
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
-                      frames=frames, seed=seed, batch_rays=batch_rays, sh_degree=sh_degree,
+                      frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, tv_weight=tv_weight, tv_points=tv_points, space=space,
                       lazy_above=lazy_above, checkpoint_every=checkpoint_every,
                       sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps

@@ -33,6 +33,8 @@ class TrainConfig:
     device: str = "auto"
     resolution: int = 0  # 0 = the dataset's
     frames: int | None = None  # train from the first w frames of each stream; None = all (resolved when training)
+    windows: int = 0  # count windows per view of a moving camera; 0 = as few as keep each window's image
+    #                   motion under a pixel (targets.count_windows; resolved when training)
     sensor_maps: str = ""  # a sensor file whose R and dark current replace the dataset's (e.g. a calibration)
     seed: int = 0
     batch_rays: int = 2048

@@ -16,9 +16,11 @@
 - ``tfp32`` / ``tfp256`` / ``tfi``: images reconstructed from spikes (TFP over 32 or 256
   frames, TFI), turned into radiance as ``X = rate * 256 / I`` (no calibration, as the
   paper's baselines), fitted with MSE.
-- ``spikelik`` (the default): the likelihood of the spike counts in time windows (8 windows
-  of T/8 frames), each rendered from the camera pose at its own time (interpolated from the
-  recorded sub-frame poses), so camera motion during the stream is modelled, not blurred;
+- ``spikelik`` (the default): the likelihood of the spike counts in time windows (at most 8;
+  by default as few as keep the image's motion within a window under a pixel,
+  :func:`spikenerf.targets.count_windows`), each rendered from the camera pose at its own time
+  (interpolated from the recorded sub-frame poses), so camera motion during the stream is
+  modelled, not blurred;
   Gaussian likelihood with the count variance of the dataset's sensor
   (:func:`neuron.count_variance`: the residual's 1/6 plus the shot noise of its
   photo-electrons per threshold), R and d from the dataset's sensor, and the dataset
@@ -44,7 +46,7 @@ class Method:
     name: str
     target: str  # "counts" | "tfp" | "tfi" | "tfp-gamma" (the published targets: (count / w) ** (1/2.2), 8-bit)
     #              | "truth" (the ground-truth image: the oracle)
-    windows: int = 1  # count windows per view (moving camera)
+    windows: int = 1  # the most count windows per view of a moving camera (targets.count_windows)
     use_resp: bool = True  # apply R (and d) in the sensor
     tfp_frames: int = 0
     loss: str = "mse"  # "mse" (rate or radiance units) | "nll" (Gaussian, count units) | "paper" (published pixel)

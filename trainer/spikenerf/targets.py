@@ -4,9 +4,13 @@
 at the training resolution), ``frames [N]`` (window length in frames; 0 for image targets),
 ``resp`` / ``dark`` ``[P]`` (sensor maps at that resolution). Every target is made from the
 first ``w`` frames of each stream (``spikenerf train --frames w``; all of them by default).
+Count targets of a moving camera are split into time windows, each seen from its own pose
+(:func:`count_windows`: ``--windows N``, or by default as few as keep the image's motion within
+a window under ``MAX_WINDOW_BLUR_PX``).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -38,6 +42,58 @@ class Targets:
     lux_to_rate: float = 0.0  # L of the published fixed-pattern maps (neuron.paper_fpn_maps); "paper" only
 
 
+# --windows 0 (auto): the fewest count windows in which the image moves by at most this many pixels
+# (at the training resolution), so that a window's own blur stays below a pixel. More windows than
+# needed cost photons per ray: each window's count holds only its share of the stream's spikes.
+MAX_WINDOW_BLUR_PX = 1.0
+
+
+def image_motion_px(ds: Dataset, view, height: int, width: int, frames: int) -> float:
+    """How far the image of ``view`` moves during its first ``frames`` frames, in pixels at
+    ``height x width``: the largest extent of the path of any of 5 x 5 scene points, seen through the
+    central half of the image (where an object centred at the world origin lies, as in NeRF-synthetic)
+    at the depth of the world origin, projected through the stream's poses at 9 evenly spaced times
+    (:func:`interpolate_pose`). 0 for a static view; infinity when the world origin is not in front
+    of the camera (the depth is then unknown)."""
+    if view.is_static():
+        return 0.0
+    cam = ds.camera(height, width)
+    fx, fy, cx, cy = (cam, cam, 0.5 * width, 0.5 * height) if isinstance(cam, float) else cam[:4]
+    rot, origin = view.pose[:3, :3], view.pose[:3, 3]
+    depth = float((rot.T @ origin)[2])  # the world origin at camera z = -depth (cameras look down -z)
+    if not depth > 0:
+        return math.inf
+    u, v = np.meshgrid(cx + width * np.linspace(-0.25, 0.25, 5), cy + height * np.linspace(-0.25, 0.25, 5))
+    cam_pts = np.stack([(u - cx) / fx, -(v - cy) / fy, -np.ones_like(u)], axis=-1).reshape(-1, 3) * depth
+    pts = cam_pts @ rot.T + origin  # world
+    paths = []
+    for t in np.linspace(0.0, frames, 9):
+        pose = interpolate_pose(view.subframe_poses, t, ds.frames)
+        c = (pts - pose[:3, 3]) @ pose[:3, :3]
+        z = np.maximum(-c[:, 2], 1e-9)
+        paths.append(np.stack([fx * c[:, 0] / z, -fy * c[:, 1] / z], axis=-1))
+    span = np.ptp(np.stack(paths), axis=0)  # [points, 2]
+    return float(np.hypot(span[:, 0], span[:, 1]).max())
+
+
+def count_windows(ds: Dataset, method: Method, height: int, width: int, frames: int, windows: int = 0) -> int:
+    """Count windows per view for ``method`` on the first ``frames`` frames: ``windows`` if given (> 0),
+    else (auto) 1 for a method without windows, and for one with windows (``spikelik``: at most
+    ``method.windows``) the fewest in which no train view's image moves by more than
+    ``MAX_WINDOW_BLUR_PX`` (:func:`image_motion_px`; 1 when every view is static). Only count targets
+    have windows: 1 for every other method, and 1 when every train view is static (a static view
+    always has one window: its windows would share one pose). Never more windows than frames."""
+    if method.target != "counts" or all(v.is_static() for v in ds.splits["train"]):
+        return 1
+    if windows > 0:
+        return min(int(windows), frames)
+    if method.windows <= 1:
+        return 1
+    motion = max(image_motion_px(ds, v, height, width, frames) for v in ds.splits["train"])
+    need = method.windows if math.isinf(motion) else max(1, math.ceil(motion / MAX_WINDOW_BLUR_PX - 1e-9))
+    return int(min(need, method.windows, frames))
+
+
 def window_bounds(frames: int, windows: int) -> list[tuple[int, int]]:
     """Split ``0..T`` into ``windows`` consecutive runs of (nearly) equal length."""
     edges = np.linspace(0, frames, windows + 1).round().astype(int)
@@ -56,8 +112,10 @@ def _pose(view, a: int, b: int, frames: int) -> np.ndarray:
     return interpolate_pose(view.subframe_poses, 0.5 * (a + b), frames)
 
 
-def view_images(ds: Dataset, view, method: Method, height: int, width: int, frames: int | None = None):
-    """[(pose [4,4], value [H,W], frames)] of one view for ``method``, from its first ``frames`` frames."""
+def view_images(ds: Dataset, view, method: Method, height: int, width: int, frames: int | None = None,
+                windows: int = 1):
+    """[(pose [4,4], value [H,W], frames)] of one view for ``method``, from its first ``frames`` frames;
+    count targets in ``windows`` windows (:func:`count_windows`; a static view has one)."""
     w = frames or ds.frames
     if method.target == "truth":
         if not has_ground_truth(view):
@@ -66,7 +124,7 @@ def view_images(ds: Dataset, view, method: Method, height: int, width: int, fram
     spikes = read_view_spikes(ds, view)[:w]
     if method.target == "counts":
         out = []
-        for a, b in window_bounds(w, 1 if view.is_static() else method.windows):
+        for a, b in window_bounds(w, 1 if view.is_static() else windows):
             counts = spikes[a:b].sum(axis=0, dtype=np.int32).astype(np.float32)
             out.append((_pose(view, a, b, ds.frames), _resize(counts, height, width), float(b - a)))
         return out
@@ -87,13 +145,15 @@ def paper_target(spikes: np.ndarray, height: int, width: int) -> np.ndarray:
 
 
 def build_targets(ds: Dataset, method: Method, height: int, width: int, progress: bool = True,
-                  frames: int | None = None, maps_file: str | None = None) -> Targets:
+                  frames: int | None = None, maps_file: str | None = None, windows: int = 0) -> Targets:
     """Read every training view once and build the method's targets at ``height x width`` from the
     first ``frames`` frames of each stream (None: all). ``maps_file``: R and dark current from this
-    sensor file (a calibration) instead of the dataset's own."""
+    sensor file (a calibration) instead of the dataset's own. ``windows``: count windows per view
+    (0 = :func:`count_windows`' choice)."""
+    windows = count_windows(ds, method, height, width, frames or ds.frames, windows)
     poses, values, lengths = [], [], []
     for view in tqdm(ds.splits["train"], desc="reading spikes", unit="view", disable=not progress, leave=False):
-        for pose, value, n in view_images(ds, view, method, height, width, frames):
+        for pose, value, n in view_images(ds, view, method, height, width, frames, windows):
             poses.append(pose)
             values.append(value.reshape(-1))
             lengths.append(n)

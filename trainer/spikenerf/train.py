@@ -24,7 +24,7 @@ from .methods import METHODS
 from .model import GridField
 from .optim import LazyGridAdam
 from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
-from .targets import Targets, build_targets
+from .targets import Targets, build_targets, count_windows
 
 CHECKPOINT = "checkpoint.pt"
 
@@ -196,14 +196,16 @@ def checkpoint_camera(ck: dict) -> tuple:
     return int(ck["height"]), int(ck["width"]), focal, float(ck.get("background", BACKGROUND))
 
 
-def _check_resume(ck: dict, cfg: TrainConfig, path: Path, all_frames: int) -> None:
-    # checkpoints from before SH was added have no SH keys: they are degree 0 (the scale is then moot);
-    # those from before --frames used every frame of the stream
+def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int]) -> None:
+    """``legacy``: (frames, windows) of a checkpoint from before those keys existed. Checkpoints from
+    before SH was added have no SH keys: they are degree 0 (the scale is then moot); those from before
+    --frames used every frame of the stream, those from before --windows the method's fixed count."""
+    all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
-           "fit_box": False, "lazy_above": 0, "space": "cube", **ck["config"]}
+           "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale", "frames", "sensor_maps", "fit_box", "lazy_above"):
+                "sh_scale", "frames", "windows", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
@@ -229,8 +231,11 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     ds = load_dataset(cfg.dataset)
     H, W = _resolution(ds, cfg.resolution)
     # the fitted box is for an object on white; a scene that fills the frame (an imported capture) keeps its box
+    if cfg.windows < 0:
+        raise InputError(f"--windows must be >= 0 (0 = chosen from the camera's motion), got {cfg.windows}")
     cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame,
                               iters=cfg.iters or default_iters(H, W))
+    cfg = dataclasses.replace(cfg, windows=count_windows(ds, method, H, W, cfg.frames, cfg.windows))
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
     space = None  # the world cube (an object on white, --space cube, or views that do not all face one way)
@@ -243,7 +248,11 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
         if space is None and cfg.space == "ndc":
             raise InputError(f"{ds.root}: --space ndc: {why}")
         log(f"{ds.root}: {why}" + ("" if space else "; the field stays in the world cube [-1.5, 1.5]^3"))
-    tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None)
+    tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None,
+                       windows=cfg.windows)
+    if cfg.windows > 1:
+        log(f"{ds.root}: counts in {cfg.windows} windows of {cfg.frames / cfg.windows:g} frames, each seen from its "
+            f"own pose")
     out.mkdir(parents=True, exist_ok=True)  # after every input is read: bad input leaves no run folder
     remove_stale_parts(out)  # a run killed while writing a checkpoint leaves its temporary behind
     ck_path = out / CHECKPOINT
@@ -252,7 +261,10 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     field = make_field(cfg, W, space).to(device)
     opt = make_optimizer(field, cfg)
     schedule = grid_schedule(cfg, W)
-    field, opt, start, train_s, space = _resume(ck_path, cfg, ds.frames, device, field, opt, space, log)
+    moving = any(not v.is_static() for v in ds.splits["train"])
+    legacy_windows = method.windows if method.target == "counts" and moving else 1  # runs from before --windows
+    field, opt, start, train_s, space = _resume(ck_path, cfg, (ds.frames, legacy_windows), device, field, opt, space,
+                                                log)
     write_json_atomic(out / "config.json", {**cfg.to_json(), "device_used": str(device), "height": H, "width": W,
                                             "holdout": ds.holdout, "heldout": ds.heldout, "grid_schedule": schedule,
                                             "intensity": ds.intensity})
@@ -274,13 +286,13 @@ def _resolution(ds, res: int) -> tuple[int, int]:
     return ds.height // f, res
 
 
-def _resume(ck_path: Path, cfg: TrainConfig, all_frames: int, device, field, opt, space, log):
+def _resume(ck_path: Path, cfg: TrainConfig, legacy: tuple[int, int], device, field, opt, space, log):
     """(field, optimizer, start iteration, training seconds, space): from the checkpoint if there is
     one (its field keeps the space it was made in: one from before NDC existed stays in the world cube)."""
     if not ck_path.is_file():
         return field, opt, 0, 0.0, space
     ck = load_checkpoint(ck_path, device)
-    _check_resume(ck, cfg, ck_path, all_frames)
+    _check_resume(ck, cfg, ck_path, legacy)
     field = field_from_checkpoint(ck, device)
     opt = make_optimizer(field, cfg)
     opt.load_state_dict(ck["optimizer"])
