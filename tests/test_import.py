@@ -492,3 +492,19 @@ def test_an_imported_capture_is_scored_against_its_truth_in_the_truth_s_units(tm
     m = evaluate(tmp_path / "run", device="cpu", progress=False)
     assert m["compared_with"] == "ground truth" and m["truth_gain"] == pytest.approx(0.5, abs=0.01)
     assert "truth_gain" not in evaluate(tmp_path / "run", device="cpu", progress=False, compare_with="reconstruction")
+
+
+@pytest.mark.parametrize("registered", [0, 2])
+def test_too_few_registered_views_is_one_line_and_writes_nothing(tmp_path, capsys, monkeypatch, registered):
+    """All views, or all but fewer than MIN_REGISTERED, failing to register: one line naming the count,
+    a non-zero exit, and no dataset folder (nor anything of the import's working files) left behind."""
+    cap, _ = _truth_capture(tmp_path, n=4)
+    _fake_sfm(monkeypatch, 4)
+    real = im.sfm_result
+    monkeypatch.setattr(im, "sfm_result", lambda rec, names: real(rec, list(names)[:registered]))
+    assert registered < im.MIN_REGISTERED
+    code, _, err = run(["import", cap, "--size", "24x16", "--out", tmp_path / "ds"], capsys)
+    said = [line for line in err.replace("\r", "\n").splitlines() if line.strip() and "view/s]" not in line]
+    assert code != 0 and len(said) == 1 and "Traceback" not in err  # the progress bars aside, one line
+    assert f"registered {registered} of 4 views" in said[0] and "nothing written" in said[0]
+    assert not (tmp_path / "ds").exists()
