@@ -418,7 +418,8 @@ def test_truth_images_are_copied_named_and_scored_against(tmp_path, capsys, monk
     assert run(["import", cap, "--size", "24x16", "--out", tmp_path / "plain"], capsys)[0] == 0
     doc = json.loads((tmp_path / "ds" / "transforms_train.json").read_text())
     for f in doc["frames"]:
-        i = f["file_path"].split("_")[-1]
+        i = f["file_path"].split("_")[-1].removesuffix(".png")
+        assert f["file_path"] == f"./train/r_{i}.png"  # with its extension, as nerfstudio opens it
         assert f["ground_truth_path"] == f"./train/r_{i}_truth.png" and f["image_kind"] == "reconstruction"
         assert (tmp_path / "ds" / "train" / f"r_{i}_truth.png").read_bytes() == (truth / f"r_{i}.png").read_bytes()
     params = json.loads((tmp_path / "ds" / "manifest.json").read_text())["parameters"]
@@ -508,3 +509,28 @@ def test_too_few_registered_views_is_one_line_and_writes_nothing(tmp_path, capsy
     assert code != 0 and len(said) == 1 and "Traceback" not in err  # the progress bars aside, one line
     assert f"registered {registered} of 4 views" in said[0] and "nothing written" in said[0]
     assert not (tmp_path / "ds").exists()
+
+
+def test_an_imported_folder_opens_as_nerfstudio_and_instant_ngp_read_it(tmp_path, capsys, monkeypatch):
+    """What their loaders do with transforms_train.json (nerfstudio's nerfstudio-data parser given the
+    .json, instant-ngp's NeRF loader): the intrinsics fl_x, fl_y, cx, cy, w, h as numbers at the top;
+    each frame's image opened at ``folder / file_path`` as it stands (nerfstudio adds no extension), of
+    size w x h; a 4 x 4 camera-to-world transform_matrix with a rigid rotation."""
+    from PIL import Image
+
+    cap, _ = _truth_capture(tmp_path)
+    _fake_sfm(monkeypatch, 9)
+    assert run(["import", cap, "--size", "24x16", "--out", tmp_path / "ds"], capsys)[0] == 0
+    doc = json.loads((tmp_path / "ds" / "transforms_train.json").read_text())
+    assert all(isinstance(doc[k], (int, float)) for k in ("fl_x", "fl_y", "cx", "cy", "w", "h"))
+    assert doc["frames"]
+    for f in doc["frames"]:
+        with Image.open(tmp_path / "ds" / f["file_path"]) as img:
+            assert img.size == (doc["w"], doc["h"])
+        m = np.asarray(f["transform_matrix"], float)
+        assert m.shape == (4, 4) and np.allclose(m[:3, :3] @ m[:3, :3].T, np.eye(3), atol=1e-6)
+    from spikenerf.data import load_dataset
+
+    ds = load_dataset(tmp_path / "ds")  # and the project's own reader takes the extension
+    assert all(v.png.is_file() and v.png.suffix == ".png" and not v.png.name.endswith(".png.png")
+               for v in ds.splits["train"] + ds.splits["test"])

@@ -721,11 +721,16 @@ class CaptureTransforms:
     reconstruction: str
     unregistered: tuple = ()  # spike files whose view COLMAP could not register
     poses_from: str = POSES_FROM_COLMAP
-    ground_truth: bool = False  # each view has ``<file_path>_truth.png`` (spikegen import --truth-images)
+    ground_truth: bool = False  # each view has ``train/r_N_truth.png`` (spikegen import --truth-images)
 
     def to_json(self) -> dict:
+        """The document; each frame's ``file_path`` names its image with the extension
+        (``./train/r_0.png``), since nerfstudio's loader opens that path as it stands (instant-ngp's also
+        tries image extensions on a path without one; NeRF-synthetic loaders add ``.png``);
+        :class:`ViewRecord` reads both."""
         base = Transforms(self.intrinsics.camera_angle_x, self.spike, self.frames).to_json()
-        frames = [{**fr, "image_kind": IMAGE_KIND_RECONSTRUCTION, "reconstruction": self.reconstruction,
+        frames = [{**fr, "file_path": fr["file_path"] + ".png", "image_kind": IMAGE_KIND_RECONSTRUCTION,
+                   "reconstruction": self.reconstruction,
                    "source_file": src, "near": float(b[0]), "far": float(b[1]),
                    **({GROUND_TRUTH_KEY: truth_name(fr["file_path"])} if self.ground_truth else {})}
                   for fr, src, b in zip(base["frames"], self.sources, self.bounds_m)]
