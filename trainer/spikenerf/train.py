@@ -251,8 +251,8 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None,
                        windows=cfg.windows)
     if cfg.windows > 1:
-        log(f"{ds.root}: counts in {cfg.windows} windows of {cfg.frames / cfg.windows:g} frames, each seen from its "
-            f"own pose")
+        log(f"{ds.root}: the counts of each moving view in {cfg.windows} windows of about {cfg.frames / cfg.windows:.0f} "
+            f"frames, each seen from its own pose")
     out.mkdir(parents=True, exist_ok=True)  # after every input is read: bad input leaves no run folder
     remove_stale_parts(out)  # a run killed while writing a checkpoint leaves its temporary behind
     ck_path = out / CHECKPOINT
