@@ -176,6 +176,18 @@ def test_sh_degree_from_the_command_line_and_resume_guard(dataset, tmp_path):
     assert res.exit_code == 2 and "sh_degree=0" in res.output and "Traceback" not in res.output
 
 
+def test_grid_learning_rate_from_the_command_line_and_resume_guard(dataset, tmp_path):
+    run = tmp_path / "lr"
+    args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
+    res = CliRunner().invoke(main, args + ["--iters", "3", "--lr-grid", "0.3"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "config.json").read_text())["lr_grid"] == 0.3
+    res = CliRunner().invoke(main, args + ["--iters", "6"])  # the default 0.1 would change the run's schedule
+    assert res.exit_code == 2 and "lr_grid=0.3" in res.output and "Traceback" not in res.output
+    res = CliRunner().invoke(main, args + ["--iters", "3", "--lr-grid", "0"])
+    assert res.exit_code == 2 and "--lr-grid" in res.output and not (tmp_path / "lr0").exists()
+
+
 def test_oracle_learns_the_sphere_from_its_images_and_needs_them(dataset, tmp_path):
     """``--method oracle`` fits the train views' ground-truth images; a view whose PNG is a
     reconstruction (an imported capture) has none: one line, exit 2, no run folder."""

@@ -202,10 +202,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     --frames used every frame of the stream, those from before --windows the method's fixed count."""
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
-           "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, **ck["config"]}
+           "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, **ck["config"]}
     new = cfg.to_json()
-    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "grid_start", "grid_final", "sh_degree",
-                "sh_scale", "frames", "windows", "sensor_maps", "fit_box", "lazy_above"):
+    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "grid_start", "grid_final",
+                "sh_degree", "sh_scale", "frames", "windows", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
