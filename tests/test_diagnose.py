@@ -476,6 +476,20 @@ def test_exact_linear_algebra_agrees_with_blas():
     assert np.allclose(exact.interpolate(w, X), w @ X)
 
 
+def test_exact_sums_are_numpys_reductions_bit_for_bit():
+    """exact.gram / rmatvec / matvec add in NumPy's order: the same bits as the reductions they replace."""
+    from spikegen.fidelity import exact
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 9, 4097, 20011):
+        for p in range(1, 10):
+            A = rng.standard_normal((n, p)) * rng.lognormal(0.0, 3.0, (n, 1))
+            b, x = rng.standard_normal(n), rng.standard_normal(p)
+            assert np.array_equal(exact.gram(A), (A[:, :, None] * A[:, None, :]).sum(axis=0)), (n, p)
+            assert np.array_equal(exact.rmatvec(A, b), (A * b[:, None]).sum(axis=0)), (n, p)
+            assert np.array_equal(exact.matvec(A, x), (A * x[None, :]).sum(axis=1)), (n, p)
+
+
 def test_equivalent_interval_under_flicker():
     """The mean interval of a flickering rate, mapped back to the steady rate's interval."""
     from spikegen.fidelity.records import equivalent_isi, flicker_mean_isi, flicker_rate_table, interval_frames

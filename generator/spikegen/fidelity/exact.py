@@ -6,6 +6,14 @@ of 4096 rows and ``b @ b`` of 20000 entries differed in their last bits. One suc
 fit moved the fitted flicker depth, hence the diagnosis' own simulations, hence verdicts. The
 functions here sum over pixels and frames with NumPy's own reductions (one thread, an order fixed
 by the shapes alone); LAPACK sees only the small systems they produce (at most 4 unknowns).
+
+NumPy sums an axis that is not the last (``A.sum(axis=0)`` of ``[n, p]``, ``p >= 2``) one row
+after another, which is the order of a running sum (``np.cumsum``), and the short last axis of
+:func:`matvec` (``p <= 7``) one column after another. :func:`gram` and :func:`rmatvec` take the
+last entry of a running sum of each column (a tight loop, several times faster than the
+reduction, whose inner loop is only ``p`` long), :func:`matvec` adds the columns in order: the
+same additions in the same order, so the same bits (tests/test_diagnose.py compares them with
+the reductions).
 """
 from __future__ import annotations
 
@@ -19,18 +27,40 @@ def dot(a: np.ndarray, b: np.ndarray) -> float:
 
 def matvec(A: np.ndarray, x) -> np.ndarray:
     """``A @ x`` for ``A [n, p]``, ``x [p]``: ``[n]``."""
-    return (np.asarray(A, dtype=np.float64) * np.asarray(x, dtype=np.float64)[None, :]).sum(axis=1)
+    A, x = np.asarray(A, dtype=np.float64), np.asarray(x, dtype=np.float64)
+    if not 1 <= A.shape[1] <= 7:  # NumPy sums 8 or more pairwise
+        return (A * x[None, :]).sum(axis=1)
+    out = A[:, 0] * x[0]
+    for j in range(1, A.shape[1]):
+        out += A[:, j] * x[j]
+    return out
+
+
+def _running_total(a: np.ndarray, b: np.ndarray) -> float:
+    """``sum(a * b)`` added in order, first to last (as NumPy sums an outer axis)."""
+    return float(np.cumsum(a * b)[-1]) if a.size else 0.0
 
 
 def rmatvec(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``A.T @ b`` for ``A [n, p]``, ``b [n]``: ``[p]``."""
-    return (np.asarray(A, dtype=np.float64) * np.asarray(b, dtype=np.float64)[:, None]).sum(axis=0)
+    A, b = np.asarray(A, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    if A.shape[1] < 2:  # a single column is summed pairwise
+        return (A * b[:, None]).sum(axis=0)
+    return np.array([_running_total(A[:, j], b) for j in range(A.shape[1])])
 
 
 def gram(A: np.ndarray) -> np.ndarray:
     """``A.T @ A`` for ``A [n, p]``: ``[p, p]``."""
     A = np.asarray(A, dtype=np.float64)
-    return (A[:, :, None] * A[:, None, :]).sum(axis=0)
+    p = A.shape[1]
+    if p < 2:  # a single column is summed pairwise
+        return (A[:, :, None] * A[:, None, :]).sum(axis=0)
+    cols = [np.ascontiguousarray(A[:, j]) for j in range(p)]
+    M = np.empty((p, p))
+    for i in range(p):
+        for j in range(i, p):
+            M[i, j] = M[j, i] = _running_total(cols[i], cols[j])
+    return M
 
 
 def lstsq(A: np.ndarray, b: np.ndarray) -> np.ndarray:
