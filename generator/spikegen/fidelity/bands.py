@@ -16,6 +16,8 @@ of 8 rows gives the same JSON, bit for bit, as one in a single band.
 """
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
 from ..sensor import CHUNK_ROWS, Sensor, simulate
@@ -94,61 +96,129 @@ def simulated_bands(ctx: Context, sensor: Sensor, rows: int):
         del sim
 
 
+def simulation_key(sensor: Sensor, shape: tuple) -> str:
+    """A digest of what a simulation of the diagnosis' reference depends on besides the context
+    (radiance, intensity, frames and seed are the diagnosis' own): ``sensor``'s scalar parameters
+    and its maps at ``shape``. Two sensors with the same key give the same stream."""
+    R, d = sensor.maps(*shape)
+    digest = hashlib.sha256(repr(sorted(sensor.parameters().items())).encode())
+    for arr in (R, d):
+        digest.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
+    return digest.hexdigest()
+
+
 def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: bool = False) -> dict:
     """The held-out score of ``sensor`` (``"score"``: heldout.HeldOutScore, as heldout.score of its
     whole simulation), with ``measures`` also ``"measures"`` (stats.discrepancies of its held-out
     frames) and with ``checks`` ``"unexplained"`` (unexplained.unexplained), in one pass over
-    bands of ``ctx.rows`` rows of its simulation."""
+    bands of ``ctx.rows`` rows of its simulation. What an earlier pass of the same simulation
+    (:func:`simulation_key`) computed is taken from ``ctx.passes`` instead of simulated again."""
+    return simulation_pass(ctx, sensor, measures=measures, checks=checks)
+
+
+def simulation_pass(ctx: Context, sensor: Sensor, score: bool = True, measures: bool = False, checks: bool = False,
+                    window: dict | None = None) -> dict:
+    """:func:`model_pass` (``"score"`` only with ``score``), and with ``window`` (``{"mask": [P]
+    or None}``) also ``"window"``: what :func:`fit_window_pass` returns of the simulation's fit
+    window, from the same simulation. The score, measures and checks of each simulation are kept
+    in ``ctx.passes`` (by :func:`simulation_key`): a pass simulates only if something asked for
+    is not there, and computes only what is not there."""
+    key = simulation_key(sensor, ctx.shape)
+    done = ctx.passes.setdefault(key, {})
+    want = {"score": score, "measures": measures, "unexplained": checks}
+    todo = {k for k, v in want.items() if v and k not in done}
+    if todo or window is not None:
+        done.update(_simulate_and_reduce(ctx, sensor, "score" in todo, "measures" in todo,
+                                         "unexplained" in todo, window))
+    out = {k: done[k] for k, v in want.items() if v}
+    if window is not None:
+        out["window"] = done.pop("window")
+    return out
+
+
+def _simulate_and_reduce(ctx: Context, sensor: Sensor, score: bool, measures: bool, checks: bool,
+                         window: dict | None) -> dict:
+    """One simulation of ``sensor``, reduced band by band to what is asked for (see :func:`simulation_pass`)."""
     T, Tf, rows = ctx.frames, ctx.Tf, ctx.rows
-    Th = T - Tf
     H, W = ctx.shape
     P = H * W
     static_ref = ctx.X.shape[0] == 1
     mask = ctx.static
-    modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, T)
-    lengths = heldout.window_lengths(Th)
-    pooled = static_ref and modulation is None  # the count means need the population factor of all pixels
-    interval_ll = np.zeros(P)
-    count_ll = {w: np.zeros(P) for w in lengths}
-    rate, cvar = np.zeros(P), {w: np.zeros(P) for w in lengths}
-    pop = {w: 0.0 for w in lengths}
-    acc = _Accumulators(P, Th) if (measures or checks) else None
+    held = _HeldOutScore(ctx, sensor) if score else None
+    acc = _Accumulators(P, T - Tf) if (measures or checks) else None
+    fit = _FitWindow(ctx, window.get("mask")) if window is not None else None
     for r0, r1, sim in simulated_bands(ctx, sensor, rows):
         sl = slice(r0 * W, r1 * W)
-        meas = ctx.spikes.rows(r0, r1, Tf)
-        band_mask = mask[sl]
-        if modulation is None:
-            interval_ll[sl] = heldout._interval_loglik(meas, stats.interval_moments(sim))
-            band_mod = None
-        else:
-            band_mod = heldout.Modulation(modulation.phi, modulation.share[sl])
-            interval_ll[sl] = heldout._clock_interval_loglik(meas, sim, band_mod)
-        if pooled:
-            rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
-        for w in lengths:
-            if pooled:
-                s = heldout.window_counts(sim[T - Th:], w)
-                pop[w] = pop[w] + s[:, band_mask].sum(axis=1)
-                cvar[w][sl] = heldout.count_variance(sim, w, True) * (1.0 + w / T)
-            else:
-                count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, static_ref, band_mod)
-        if acc is not None:
-            acc.add(sl, meas, sim, band_mask, static_ref, checks)
-    if pooled:  # heldout._count_loglik's static branch, with the factor of the whole population
-        for r0, r1 in bands(H, rows):
-            sl = slice(r0 * W, r1 * W)
-            for w in lengths:
-                c = heldout.window_counts(ctx.spikes.rows(r0, r1, Tf), w)
-                count_ll[w][sl] = heldout.count_loglik_given(c, pop[w], rate[sl], w, cvar[w][sl])
-    per_pixel = interval_ll
-    for w in lengths:
-        per_pixel = per_pixel + count_ll[w] / len(lengths)
-    out = {"score": heldout.finish_score(per_pixel, mask)}
+        if held is not None or acc is not None:
+            meas = ctx.spikes.rows(r0, r1, Tf)
+            if held is not None:
+                held.add(sl, meas, sim)
+            if acc is not None:
+                acc.add(sl, meas, sim, mask[sl], static_ref, checks)
+        if fit is not None:
+            fit.add(r0, r1, sim[:Tf])
+    out = {}
+    if held is not None:
+        out["score"] = held.finish()
     if measures:
         out["measures"] = acc.measures(ctx.X.mean(axis=0), H, W)
     if checks:
         out["unexplained"] = acc.unexplained(mask, H, W)
+    if fit is not None:
+        out["window"] = fit.finish()
     return out
+
+
+class _HeldOutScore:
+    """heldout.score of a model's whole simulation, band by band (:func:`simulation_pass`)."""
+
+    def __init__(self, ctx: Context, sensor: Sensor):
+        T, Tf = ctx.frames, ctx.Tf
+        P = ctx.shape[0] * ctx.shape[1]
+        self.ctx = ctx
+        self.static_ref = ctx.X.shape[0] == 1
+        self.modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, T)
+        self.lengths = heldout.window_lengths(T - Tf)
+        # the count means need the population factor of all pixels
+        self.pooled = self.static_ref and self.modulation is None
+        self.interval_ll = np.zeros(P)
+        self.count_ll = {w: np.zeros(P) for w in self.lengths}
+        self.rate, self.cvar = np.zeros(P), {w: np.zeros(P) for w in self.lengths}
+        self.pop = {w: 0.0 for w in self.lengths}
+
+    def add(self, sl: slice, meas: np.ndarray, sim: np.ndarray) -> None:
+        """The pixels ``sl`` of the measured held-out frames ``meas`` and of the simulation ``sim``."""
+        T, Th = sim.shape[0], meas.shape[0]
+        band_mask = self.ctx.static[sl]
+        if self.modulation is None:
+            self.interval_ll[sl] = heldout._interval_loglik(meas, stats.interval_moments(sim))
+            band_mod = None
+        else:
+            band_mod = heldout.Modulation(self.modulation.phi, self.modulation.share[sl])
+            self.interval_ll[sl] = heldout._clock_interval_loglik(meas, sim, band_mod)
+        if self.pooled:
+            self.rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
+        for w in self.lengths:
+            if self.pooled:
+                s = heldout.window_counts(sim[T - Th:], w)
+                self.pop[w] = self.pop[w] + s[:, band_mask].sum(axis=1)
+                self.cvar[w][sl] = heldout.count_variance(sim, w, True) * (1.0 + w / T)
+            else:
+                self.count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, self.static_ref, band_mod)
+
+    def finish(self) -> heldout.HeldOutScore:
+        ctx, lengths = self.ctx, self.lengths
+        W = ctx.shape[1]
+        if self.pooled:  # heldout._count_loglik's static branch, with the factor of the whole population
+            for r0, r1 in bands(ctx.shape[0], ctx.rows):
+                sl = slice(r0 * W, r1 * W)
+                for w in lengths:
+                    c = heldout.window_counts(ctx.spikes.rows(r0, r1, ctx.Tf), w)
+                    self.count_ll[w][sl] = heldout.count_loglik_given(c, self.pop[w], self.rate[sl], w, self.cvar[w][sl])
+        per_pixel = self.interval_ll
+        for w in lengths:
+            per_pixel = per_pixel + self.count_ll[w] / len(lengths)
+        return heldout.finish_score(per_pixel, ctx.static)
 
 
 class _Accumulators:
@@ -254,13 +324,20 @@ def window_rate(stream: Stream, rows: int, t0: int, t1: int) -> np.ndarray:
 def population_signal(stream: Stream, mask: np.ndarray, rows: int, t0: int = 0, t1: int | None = None) -> np.ndarray:
     """stats.population_signal of frames ``t0:t1`` of ``stream`` over ``mask [P]``: whole numbers
     summed band by band (the same numbers)."""
+    return population_signals(stream, [mask], rows, t0, t1)[0]
+
+
+def population_signals(stream: Stream, masks: list, rows: int, t0: int = 0, t1: int | None = None) -> list:
+    """:func:`population_signal` of each mask of ``masks`` (``[P]`` each), in one read of the stream."""
     W = stream.shape[2]
-    mask = np.asarray(mask).reshape(-1)
-    total = 0
+    masks = [np.asarray(m).reshape(-1) for m in masks]
+    totals = [0] * len(masks)
     for r0, r1 in bands(stream.shape[1], rows):
         band = stream.rows(r0, r1, t0, t1)
-        total = total + band.reshape(band.shape[0], -1)[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
-    return np.asarray(total).astype(np.float64)
+        flat = band.reshape(band.shape[0], -1)
+        for i, mask in enumerate(masks):
+            totals[i] = totals[i] + flat[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
+    return [np.asarray(total).astype(np.float64) for total in totals]
 
 
 def quadrant_counts(stream: Stream, mask: np.ndarray, rows: int, t1: int) -> np.ndarray:
@@ -270,13 +347,18 @@ def quadrant_counts(stream: Stream, mask: np.ndarray, rows: int, t1: int) -> np.
 
 
 def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | None = None,
-                    clock_mask: np.ndarray | None = None) -> dict:
+                    clock_mask: np.ndarray | None = None, score: bool = False) -> dict:
     """Of ``sensor``'s simulation's fit window (its first ``Tf`` frames), band by band:
     ``"stats"`` (stats.pixel_stats, without ``isi_values``), with ``mask [P]`` also ``"quadrants"``
     (stats.quadrant_counts) and ``"signal"`` (stats.population_signal over ``mask``), with
-    ``clock_mask`` the stats measured on the population clock of those pixels instead (two passes)."""
+    ``clock_mask`` the stats measured on the population clock of those pixels instead (two passes).
+    With ``score`` (``rows`` those of the context, no ``clock_mask``) the same simulation's
+    held-out score is computed too and kept for :func:`model_pass`, which then need not simulate
+    the sensor again (:func:`simulation_pass`)."""
     H, W = ctx.shape
     Tf = ctx.Tf
+    if clock_mask is None and rows == ctx.rows:
+        return simulation_pass(ctx, sensor, score=score, window={"mask": mask})["window"]
     clock = None
     if clock_mask is not None:
         signal = 0
@@ -284,19 +366,35 @@ def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | 
             band = band[:Tf]
             signal = signal + band.reshape(Tf, -1)[:, clock_mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
         clock = stats.clock_of(np.asarray(signal).astype(np.float64))
-    parts, quads, signal = [], 0, 0
+    fit = _FitWindow(ctx, mask, clock)
     for r0, r1, band in simulated_bands(ctx, sensor, rows):
-        band = band[:Tf]
-        p = stats.pixel_stats(band, clock)
+        fit.add(r0, r1, band[:Tf])
+    return fit.finish()
+
+
+class _FitWindow:
+    """What :func:`fit_window_pass` returns, band by band."""
+
+    def __init__(self, ctx: Context, mask: np.ndarray | None, clock: np.ndarray | None = None):
+        self.shape, self.mask, self.clock = ctx.shape, mask, clock
+        self.parts, self.quads, self.signal = [], 0, 0
+
+    def add(self, r0: int, r1: int, band: np.ndarray) -> None:
+        """Rows ``r0:r1`` of the fit window, ``band [Tf, r1 - r0, W]``."""
+        H, W = self.shape
+        p = stats.pixel_stats(band, self.clock)
         p.isi_values = None
-        parts.append(p)
-        if mask is not None:
-            quads = quads + stats.quadrant_counts(band, mask, top=r0, height=H)
-            signal = signal + band.reshape(Tf, -1)[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
-    out = {"stats": join_stats(parts)}
-    if mask is not None:
-        out["quadrants"], out["signal"] = quads, np.asarray(signal).astype(np.float64)
-    return out
+        self.parts.append(p)
+        if self.mask is not None:
+            self.quads = self.quads + stats.quadrant_counts(band, self.mask, top=r0, height=H)
+            self.signal = self.signal + band.reshape(band.shape[0], -1)[:, self.mask[r0 * W: r1 * W]].sum(
+                axis=1, dtype=np.int64)
+
+    def finish(self) -> dict:
+        out = {"stats": join_stats(self.parts)}
+        if self.mask is not None:
+            out["quadrants"], out["signal"] = self.quads, np.asarray(self.signal).astype(np.float64)
+        return out
 
 
 def motion_test(stream: Stream, rows: int) -> tuple[np.ndarray, np.ndarray]:

@@ -343,7 +343,9 @@ def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
     by its pixels beyond the model's (:func:`_common_mode`), both streams' intervals are measured
     on their own population's clock (stats.population_clock), which removes it, first."""
     mask = _common_mask(ctx, fit)
-    sim = bands.fit_window_pass(ctx, deterministic, ctx.rows, mask=mask)
+    # `deterministic` is the model of the gated effects but shot noise, which the held-out choice
+    # always scores (diagnose._choose): its score comes from this simulation too (ctx.passes)
+    sim = bands.fit_window_pass(ctx, deterministic, ctx.rows, mask=mask, score=True)
     common = _common_mode(ctx, mask, sim["quadrants"])
     meas, ps = ctx.meas, sim["stats"]
     if common["removed"]:

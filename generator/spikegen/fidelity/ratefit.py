@@ -266,9 +266,12 @@ def fit_flicker(ctx: Context, rate: RateFit | None) -> FlickerFit | None:
         return None
     light_of = _light_of(ctx, weight)
     light = light_of(mask)
-    sine = stats.fit_sine(bands.population_signal(ctx.spikes, mask, ctx.rows, 0, ctx.Tf), light,
-                          min_period=6.0, max_period=2.0 * ctx.frames)
-    coherence = _coherence(ctx, lam, mask, light_of, sine.period_frames)
+    groups = _brightness_quartiles(lam, mask)
+    # one read of the fit window for the four groups; their sum is the signal of the whole mask
+    # (whole numbers: the same as reading it alone)
+    group_signals = bands.population_signals(ctx.spikes, groups, ctx.rows, 0, ctx.Tf)
+    sine = stats.fit_sine(sum(group_signals), light, min_period=6.0, max_period=2.0 * ctx.frames)
+    coherence = _coherence(groups, group_signals, light_of, sine.period_frames)
     return FlickerFit(sine.period_frames, sine.depth, sine.phase, sine.z, coherence, mask, light)
 
 
@@ -294,14 +297,16 @@ def _light_of(ctx: Context, weight: np.ndarray):
     return lambda m: exact.matvec(wts, (xk[:, m] * scale[m]).sum(axis=1))
 
 
-def _coherence(ctx: Context, lam, mask, light_of, period_frames) -> float:
-    """Flicker modulates the light of every pixel in phase and by the same depth; the beat of
-    regular pixel trains depends on their rate. Agreement of four brightness quartiles."""
+def _brightness_quartiles(lam, mask) -> list:
+    """The pixels of ``mask [P]`` in four groups ``[P]`` by the quartiles of ``lam`` over ``mask``."""
     edges = np.quantile(lam[mask], [0.25, 0.5, 0.75])
     groups = np.searchsorted(edges, lam)
-    vecs = []
-    for gi in range(4):
-        m = mask & (groups == gi)
-        signal = bands.population_signal(ctx.spikes, m, ctx.rows, 0, ctx.Tf)
-        vecs.append(stats.sine_at(signal, light_of(m), 1.0 / period_frames))
+    return [mask & (groups == gi) for gi in range(4)]
+
+
+def _coherence(groups, signals, light_of, period_frames) -> float:
+    """Flicker modulates the light of every pixel in phase and by the same depth; the beat of
+    regular pixel trains depends on their rate. Agreement of four brightness quartiles (``groups``,
+    :func:`_brightness_quartiles`, with their population ``signals``)."""
+    vecs = [stats.sine_at(signal, light_of(m), 1.0 / period_frames) for m, signal in zip(groups, signals)]
     return float(abs(sum(vecs)) / max(sum(abs(v) for v in vecs), 1e-12))
