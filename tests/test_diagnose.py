@@ -477,7 +477,8 @@ def test_exact_linear_algebra_agrees_with_blas():
 
 
 def test_exact_sums_are_numpys_reductions_bit_for_bit():
-    """exact.gram / rmatvec / matvec add in NumPy's order: the same bits as the reductions they replace."""
+    """exact.gram / matvec / normal_equations / matvec_columns add in NumPy's order: the same bits
+    as the plain reductions they replace."""
     from spikegen.fidelity import exact
 
     rng = np.random.default_rng(3)
@@ -488,6 +489,12 @@ def test_exact_sums_are_numpys_reductions_bit_for_bit():
             assert np.array_equal(exact.gram(A), (A[:, :, None] * A[:, None, :]).sum(axis=0)), (n, p)
             assert np.array_equal(exact.rmatvec(A, b), (A * b[:, None]).sum(axis=0)), (n, p)
             assert np.array_equal(exact.matvec(A, x), (A * x[None, :]).sum(axis=1)), (n, p)
+            if 2 <= p <= 7:
+                cols = [A[:, j].copy() for j in range(p)]
+                M, v = exact.normal_equations(cols, b)
+                assert np.array_equal(M, (A[:, :, None] * A[:, None, :]).sum(axis=0)), (n, p)
+                assert np.array_equal(v, (A * b[:, None]).sum(axis=0)), (n, p)
+                assert np.array_equal(exact.matvec_columns(cols, x), (A * x[None, :]).sum(axis=1)), (n, p)
 
 
 def test_equivalent_interval_under_flicker():

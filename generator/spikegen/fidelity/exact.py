@@ -7,13 +7,13 @@ fit moved the fitted flicker depth, hence the diagnosis' own simulations, hence 
 functions here sum over pixels and frames with NumPy's own reductions (one thread, an order fixed
 by the shapes alone); LAPACK sees only the small systems they produce (at most 4 unknowns).
 
-NumPy sums an axis that is not the last (``A.sum(axis=0)`` of ``[n, p]``, ``p >= 2``) one row
-after another, which is the order of a running sum (``np.cumsum``), and the short last axis of
-:func:`matvec` (``p <= 7``) one column after another. :func:`gram` and :func:`rmatvec` take the
-last entry of a running sum of each column (a tight loop, several times faster than the
-reduction, whose inner loop is only ``p`` long), :func:`matvec` adds the columns in order: the
-same additions in the same order, so the same bits (tests/test_diagnose.py compares them with
-the reductions).
+NumPy sums an axis that is not the last (``X.sum(axis=0)`` of ``[n, k]``, ``k >= 2``) one row
+after another, and the short last axis of :func:`matvec` (``p <= 7``) one column after another.
+:func:`gram` sums each product of two columns once (not the ``p x p`` of them) in one such
+reduction, :func:`normal_equations` the products of :func:`gram` and :func:`rmatvec` together,
+from the columns, without stacking the matrix; :func:`matvec` adds the columns in order: the
+same additions in the same order as the plain reductions, so the same bits
+(tests/test_diagnose.py compares them).
 """
 from __future__ import annotations
 
@@ -36,31 +36,50 @@ def matvec(A: np.ndarray, x) -> np.ndarray:
     return out
 
 
-def _running_total(a: np.ndarray, b: np.ndarray) -> float:
-    """``sum(a * b)`` added in order, first to last (as NumPy sums an outer axis)."""
-    return float(np.cumsum(a * b)[-1]) if a.size else 0.0
-
-
 def rmatvec(A: np.ndarray, b: np.ndarray) -> np.ndarray:
     """``A.T @ b`` for ``A [n, p]``, ``b [n]``: ``[p]``."""
-    A, b = np.asarray(A, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    if A.shape[1] < 2:  # a single column is summed pairwise
-        return (A * b[:, None]).sum(axis=0)
-    return np.array([_running_total(A[:, j], b) for j in range(A.shape[1])])
+    return (np.asarray(A, dtype=np.float64) * np.asarray(b, dtype=np.float64)[:, None]).sum(axis=0)
 
 
 def gram(A: np.ndarray) -> np.ndarray:
     """``A.T @ A`` for ``A [n, p]``: ``[p, p]``."""
     A = np.asarray(A, dtype=np.float64)
-    p = A.shape[1]
-    if p < 2:  # a single column is summed pairwise
+    if A.shape[1] < 2:  # a single column is summed pairwise
         return (A[:, :, None] * A[:, None, :]).sum(axis=0)
-    cols = [np.ascontiguousarray(A[:, j]) for j in range(p)]
+    return _pair_sums([A[:, j] for j in range(A.shape[1])], A.shape[0])[0]
+
+
+def normal_equations(cols: list, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(gram(A), rmatvec(A, b))`` of the matrix ``A`` whose columns are ``cols`` (``[n]`` each,
+    at least two), the same bits, without stacking ``A``."""
+    return _pair_sums(cols, len(b), b)
+
+
+def _pair_sums(cols: list, n: int, b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(gram of the columns, their products with b summed)``: every product of two columns (each
+    pair once) and of each column with ``b`` in one ``[n, k]`` array, summed over its rows by one
+    reduction (NumPy adds row after row, as :func:`gram` and :func:`rmatvec` do)."""
+    p = len(cols)
+    pairs = [(i, j) for i in range(p) for j in range(i, p)]
+    prod = np.empty((n, len(pairs) + (p if b is not None else 0)))
+    for k, (i, j) in enumerate(pairs):
+        np.multiply(cols[i], cols[j], out=prod[:, k])
+    if b is not None:
+        for k, col in enumerate(cols):
+            np.multiply(col, b, out=prod[:, len(pairs) + k])
+    sums = prod.sum(axis=0)
     M = np.empty((p, p))
-    for i in range(p):
-        for j in range(i, p):
-            M[i, j] = M[j, i] = _running_total(cols[i], cols[j])
-    return M
+    for k, (i, j) in enumerate(pairs):
+        M[i, j] = M[j, i] = sums[k]
+    return M, sums[len(pairs):]
+
+
+def matvec_columns(cols: list, x) -> np.ndarray:
+    """:func:`matvec` of the matrix whose columns are ``cols`` (one to seven), the same bits."""
+    out = cols[0] * x[0]
+    for j in range(1, len(cols)):
+        out += cols[j] * x[j]
+    return out
 
 
 def lstsq(A: np.ndarray, b: np.ndarray) -> np.ndarray:

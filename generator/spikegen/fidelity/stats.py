@@ -51,14 +51,24 @@ class PixelStats:
 
 def spike_times(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(pixel, frame)`` of every spike, sorted by pixel then frame (``int64 [N]`` each)."""
+    idx, starts, T = _pixel_major_spikes(spikes)
+    pix = np.repeat(np.arange(starts.size - 1, dtype=np.int64), np.diff(starts))
+    return pix, idx - pix * T
+
+
+def _pixel_major_spikes(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(idx [N], starts [P + 1], T)``: ``idx = pixel * T + frame`` of every spike, sorted (pixel
+    major), and where each pixel's spikes start in it (pixel ``p``: ``idx[starts[p]:starts[p + 1]]``)."""
     T = spikes.shape[0]
     frames = spikes.reshape(T, -1)
+    P = frames.shape[1]
     flat = np.empty(frames.shape[::-1], dtype=frames.dtype)  # [P, T]
     for t0 in range(0, T, TRANSPOSE_FRAMES):  # in blocks of frames: a byte array's plain transpose is 4x slower
         flat[:, t0: t0 + TRANSPOSE_FRAMES] = frames[t0: t0 + TRANSPOSE_FRAMES].T
     idx = np.flatnonzero(flat).astype(np.int64, copy=False)
-    pix = idx // max(T, 1)
-    return pix, idx - pix * T
+    # the pixels' boundaries by bisection (P searches), not a division of every index by T
+    starts = np.searchsorted(idx, np.arange(P + 1, dtype=np.int64) * T)
+    return idx, starts, T
 
 
 TRANSPOSE_FRAMES = 256
@@ -70,6 +80,11 @@ def grouped_var(values, groups, P, min_count):
     cnt = np.bincount(groups, minlength=P).astype(np.float64)
     s1 = np.bincount(groups, weights=values, minlength=P)
     s2 = np.bincount(groups, weights=values * values, minlength=P)
+    return _moments(cnt, s1, s2, min_count)
+
+
+def _moments(cnt, s1, s2, min_count):
+    """:func:`grouped_var` from the count, sum and sum of squares of each group."""
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = s1 / cnt
         var = (s2 - cnt * mean * mean) / (cnt - 1)
@@ -126,11 +141,30 @@ def intervals(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def interval_moments(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(isi_mean, isi_var, n_isi)`` of :func:`pixel_stats` alone (the same numbers, cheaper)."""
-    P = int(np.prod(spikes.shape[1:]))
-    pix, t = spike_times(spikes)
-    same = pix[1:] == pix[:-1]
-    return grouped_var((t[1:] - t[:-1])[same].astype(np.float64), pix[1:][same], P, 3)
+    """``(isi_mean, isi_var, n_isi)`` of :func:`pixel_stats` alone (the same numbers, cheaper).
+
+    :func:`grouped_var` of whole-frame intervals adds whole numbers, exactly: its sums are the
+    integers ``last - first`` and the sum of squared intervals, which come here from each pixel's
+    first and last spike and from a running sum of squared differences of the spike indices
+    (pixel major: within a pixel they are its intervals), without sorting the intervals out by
+    pixel; the same formulas on the same sums give the same bits."""
+    idx, starts, _ = _pixel_major_spikes(spikes)
+    P = starts.size - 1
+    n = np.diff(starts)
+    sq = np.zeros(idx.size, dtype=np.int64)  # sq[k]: sum of squared differences of idx[0..k]
+    if idx.size > 1:
+        d = np.diff(idx)
+        entry = starts[:-1][(n > 0) & (starts[:-1] > 0)]  # a pixel's first spike: no interval before it
+        d[entry - 1] = 0
+        np.cumsum(d * d, out=sq[1:])
+    two = n >= 2
+    cnt = np.maximum(n - 1, 0).astype(np.float64)
+    s1 = np.zeros(P)
+    s2 = np.zeros(P)
+    first, last = starts[:-1][two], starts[1:][two] - 1  # positions in idx
+    s1[two] = (idx[last] - idx[first]).astype(np.float64)
+    s2[two] = (sq[last] - sq[first]).astype(np.float64)
+    return _moments(cnt, s1, s2, 3)
 
 
 def _isi_extremes(isi, isi_pix, P):
