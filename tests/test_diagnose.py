@@ -497,6 +497,45 @@ def test_exact_sums_are_numpys_reductions_bit_for_bit():
                 assert np.array_equal(exact.matvec_columns(cols, x), (A * x[None, :]).sum(axis=1)), (n, p)
 
 
+def test_spike_times_and_interval_moments_are_those_of_the_intervals():
+    """stats.spike_times against a plain transpose and division; stats.interval_moments (sums of
+    whole numbers from first and last spikes) bit for bit against pixel_stats (grouped_var of
+    every interval), with pixels of no, one, two and many spikes."""
+    rng = np.random.default_rng(5)
+    for T, H, W, p in [(1, 2, 2, 0.5), (7, 1, 1, 0.0), (50, 3, 4, 0.05), (200, 5, 7, 0.3), (3000, 8, 40, 0.2)]:
+        s = (rng.random((T, H, W)) < p * 2 * rng.random((1, H, W))).astype(np.uint8)
+        s[:, 0, 0] = 0
+        s[T // 2:, -1, -1] = 1
+        idx = np.flatnonzero(s.reshape(T, -1).T)
+        pix, t = stats.spike_times(s)
+        assert np.array_equal(pix, idx // T) and np.array_equal(t, idx % T) and pix.dtype == t.dtype == np.int64
+        ps = stats.pixel_stats(s)
+        for got, want in zip(stats.interval_moments(s), (ps.isi_mean, ps.isi_var, ps.n_isi)):
+            assert np.array_equal(got, want, equal_nan=True), (T, H, W)
+
+
+def test_simulation_memo_gives_the_recomputed_diagnosis(monkeypatch):
+    """A model simulated twice is simulated once (bands.simulation_pass, ctx.passes): the same JSON
+    as a diagnosis that simulates every pass anew, with fewer simulations."""
+    import itertools
+
+    from spikegen.fidelity import bands
+
+    spikes, radiance, intensity, _ = synth.hidden_case(["gain_nonuniformity", "shot_noise"], seed=8, frames=600)
+    calls = []
+    simulate_rows = bands.simulate_rows
+    monkeypatch.setattr(bands, "simulate_rows", lambda *a, **k: calls.append(1) or simulate_rows(*a, **k))
+    memo = diagnose(spikes, radiance, intensity)
+    with_memo = len(calls)
+    fresh_keys = itertools.count()
+    monkeypatch.setattr(bands, "simulation_key", lambda sensor, shape: next(fresh_keys))
+    calls.clear()
+    fresh = diagnose(spikes, radiance, intensity)
+    assert memo.detected == fresh.detected and "shot_noise" in memo.detected
+    assert json.dumps(memo.as_json(), sort_keys=True) == json.dumps(fresh.as_json(), sort_keys=True)
+    assert with_memo <= len(calls) - 2, (with_memo, len(calls))  # the shot-noise model's and the kept model's
+
+
 def test_equivalent_interval_under_flicker():
     """The mean interval of a flickering rate, mapped back to the steady rate's interval."""
     from spikegen.fidelity.records import equivalent_isi, flicker_mean_isi, flicker_rate_table, interval_frames
