@@ -151,10 +151,11 @@ def _simulate_and_reduce(ctx: Context, sensor: Sensor, score: bool, measures: bo
         sl = slice(r0 * W, r1 * W)
         if held is not None or acc is not None:
             meas = ctx.spikes.rows(r0, r1, Tf)
+            band = _Band(meas, sim)  # what both reductions take of the band, made once
             if held is not None:
-                held.add(sl, meas, sim)
+                held.add(sl, band)
             if acc is not None:
-                acc.add(sl, meas, sim, mask[sl], static_ref, checks)
+                acc.add(sl, band, mask[sl], static_ref, checks)
         if fit is not None:
             fit.add(r0, r1, sim[:Tf])
     out = {}
@@ -167,6 +168,35 @@ def _simulate_and_reduce(ctx: Context, sensor: Sensor, score: bool, measures: bo
     if fit is not None:
         out["window"] = fit.finish()
     return out
+
+
+class _Band:
+    """A band's measured held-out frames ``meas [Th, rows, W]`` and simulation ``sim [T, rows, W]``,
+    with what the held-out score and the accumulators both take of them (window counts, count
+    variances, spike times), each computed on first use and then kept (the same arrays: none is
+    changed in place by its users)."""
+
+    def __init__(self, meas: np.ndarray, sim: np.ndarray):
+        self.meas, self.sim = meas, sim
+        self.held = sim[sim.shape[0] - meas.shape[0]:]  # the simulation's held-out frames
+        self._memo = {}
+
+    def _get(self, key, make):
+        if key not in self._memo:
+            self._memo[key] = make()
+        return self._memo[key]
+
+    def windows(self, which: str, w: int) -> np.ndarray:
+        """heldout.window_counts of ``"meas"`` or ``"held"`` (the simulation's held-out frames)."""
+        return self._get(("windows", which, w), lambda: heldout.window_counts(getattr(self, which), w))
+
+    def count_variance(self, w: int, static_reference: bool) -> np.ndarray:
+        """heldout.count_variance of the whole simulation (no modulation)."""
+        return self._get(("cvar", w, static_reference), lambda: heldout.count_variance(self.sim, w, static_reference))
+
+    def times(self, which: str) -> tuple:
+        """stats.spike_times of ``"meas"`` or ``"held"``."""
+        return self._get(("times", which), lambda: stats.spike_times(getattr(self, which)))
 
 
 class _HeldOutScore:
@@ -186,12 +216,14 @@ class _HeldOutScore:
         self.rate, self.cvar = np.zeros(P), {w: np.zeros(P) for w in self.lengths}
         self.pop = {w: 0.0 for w in self.lengths}
 
-    def add(self, sl: slice, meas: np.ndarray, sim: np.ndarray) -> None:
-        """The pixels ``sl`` of the measured held-out frames ``meas`` and of the simulation ``sim``."""
+    def add(self, sl: slice, band: _Band) -> None:
+        """The pixels ``sl``: the band's measured held-out frames and simulation."""
+        meas, sim = band.meas, band.sim
         T, Th = sim.shape[0], meas.shape[0]
         band_mask = self.ctx.static[sl]
         if self.modulation is None:
-            self.interval_ll[sl] = heldout._interval_loglik(meas, stats.interval_moments(sim))
+            self.interval_ll[sl] = heldout._interval_loglik(meas, stats.interval_moments(sim),
+                                                            stats.intervals(meas, times=band.times("meas")))
             band_mod = None
         else:
             band_mod = heldout.Modulation(self.modulation.phi, self.modulation.share[sl])
@@ -200,9 +232,9 @@ class _HeldOutScore:
             self.rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
         for w in self.lengths:
             if self.pooled:
-                s = heldout.window_counts(sim[T - Th:], w)
+                s = band.windows("held", w)
                 self.pop[w] = self.pop[w] + s[:, band_mask].sum(axis=1)
-                self.cvar[w][sl] = heldout.count_variance(sim, w, True) * (1.0 + w / T)
+                self.cvar[w][sl] = band.count_variance(w, True) * (1.0 + w / T)
             else:
                 self.count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, self.static_ref, band_mod)
 
@@ -238,10 +270,11 @@ class _Accumulators:
             self.fields[name] = np.zeros(self.P, dtype=np.asarray(values).dtype)
         self.fields[name][sl] = values
 
-    def add(self, sl, meas, sim_full, mask, static_ref, checks):
-        Th, T = self.Th, sim_full.shape[0]
-        sim = sim_full[T - Th:]
-        pm, ps = stats.pixel_stats(meas), stats.pixel_stats(sim)
+    def add(self, sl, band: _Band, mask, static_ref, checks):
+        meas, sim_full, sim = band.meas, band.sim, band.held
+        Th = self.Th
+        pm = stats.pixel_stats(meas, times=band.times("meas"))
+        ps = stats.pixel_stats(sim, times=band.times("held"))
         hm, hs = stats.isi_histogram(pm.isi_values, Th), stats.isi_histogram(ps.isi_values, Th)
         self.hist["m"] += hm
         self.hist["s"] += hs
@@ -259,22 +292,23 @@ class _Accumulators:
         self._put("c", sl, c)
         self._put("s", sl, s)
         self._put("var", sl, 2.0 * heldout.count_variance(sim_full, Th, static_ref))
-        self._put("var4", sl, heldout.count_variance(sim_full, 4, True))
-        w4 = [heldout.window_counts(x, 4)[:, mask] for x in (meas, sim)]
+        self._put("var4", sl, band.count_variance(4, True))
+        w4 = [band.windows(x, 4)[:, mask] for x in ("meas", "held")]
         self.frame["c"] = self.frame["c"] + w4[0].sum(axis=1)
         self.frame["s"] = self.frame["s"] + w4[1].sum(axis=1)
         self.frame["n"] = w4[0].shape[0]
-        c16, s16 = (heldout.window_counts(x, 16)[:, mask] for x in (meas, sim))
+        c16, s16 = (band.windows(x, 16)[:, mask] for x in ("meas", "held"))
         self.frame["n16"] = c16.shape[0]
         if c16.shape[0] >= 4:
             self.lists["disp_d"].append(c16.var(axis=0, ddof=1) - s16.var(axis=0, ddof=1))
             self.lists["disp_s"].append(s16.var(axis=0, ddof=1))
-        for key, x, p in (("rm", meas, pm), ("rs", sim, ps)):
-            r = stats.serial_correlation(x)[mask & (p.isi_var >= 2.0) & (p.n_isi >= 8)]
+        for key, x, p in (("rm", "meas", pm), ("rs", "held", ps)):
+            r = stats.serial_correlation(getattr(band, x), times=band.times(x))[mask & (p.isi_var >= 2.0) & (p.n_isi >= 8)]
             self.lists[key].append(r)
         keep = np.flatnonzero(mask)
-        for key, x, p in (("m_mask", meas, pm), ("s_mask", sim, ps)):
-            self.hist[key] += stats.isi_histogram(p.isi_values[np.isin(stats.interval_pixels(x), keep)], Th)
+        for key, x, p in (("m_mask", "meas", pm), ("s_mask", "held", ps)):
+            pixels = stats.interval_pixels(getattr(band, x), times=band.times(x))
+            self.hist[key] += stats.isi_histogram(p.isi_values[np.isin(pixels, keep)], Th)
 
     def _stats(self, k):
         f = self.fields

@@ -93,13 +93,14 @@ def _moments(cnt, s1, s2, min_count):
     return mean, var, cnt
 
 
-def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None) -> PixelStats:
+def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None, times: tuple | None = None) -> PixelStats:
     """Timing statistics of every pixel of ``spikes [T, H, W]`` (see :class:`PixelStats`).
     ``clock [T]``: the time of each frame to measure intervals in (``isi_mean``, ``isi_var``,
-    ``span_var``, ``diff_var``, ``isi_values``; :func:`population_clock`); None: frames."""
+    ``span_var``, ``diff_var``, ``isi_values``; :func:`population_clock`); None: frames.
+    ``times``: :func:`spike_times` of ``spikes`` if already computed."""
     T = spikes.shape[0]
     P = int(np.prod(spikes.shape[1:]))
-    pix, t = spike_times(spikes)
+    pix, t = times if times is not None else spike_times(spikes)
     n = np.bincount(pix, minlength=P)
     ends = np.cumsum(n)
     starts = ends - n
@@ -133,9 +134,10 @@ def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None) -> PixelSta
                       diff_var)
 
 
-def intervals(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(isi_values, interval pixels)`` of :func:`pixel_stats` and :func:`interval_pixels` alone."""
-    pix, t = spike_times(spikes)
+def intervals(spikes: np.ndarray, times: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(isi_values, interval pixels)`` of :func:`pixel_stats` and :func:`interval_pixels` alone
+    (``times``: :func:`spike_times` of ``spikes`` if already computed)."""
+    pix, t = times if times is not None else spike_times(spikes)
     same = pix[1:] == pix[:-1]
     return (t[1:] - t[:-1])[same].astype(np.float64), pix[1:][same]
 
@@ -179,17 +181,18 @@ def _isi_extremes(isi, isi_pix, P):
     return isi_min, isi_max
 
 
-def interval_pixels(spikes: np.ndarray) -> np.ndarray:
-    """``int64 [n_isi_total]``: the pixel of each interval, in the order of ``PixelStats.isi_values``."""
-    pix, _ = spike_times(spikes)
+def interval_pixels(spikes: np.ndarray, times: tuple | None = None) -> np.ndarray:
+    """``int64 [n_isi_total]``: the pixel of each interval, in the order of ``PixelStats.isi_values``
+    (``times``: :func:`spike_times` of ``spikes`` if already computed)."""
+    pix, _ = times if times is not None else spike_times(spikes)
     return pix[1:][pix[1:] == pix[:-1]]
 
 
-def serial_correlation(spikes: np.ndarray) -> np.ndarray:
+def serial_correlation(spikes: np.ndarray, times: tuple | None = None) -> np.ndarray:
     """``[P]`` lag-1 correlation of consecutive intervals of each pixel (NaN below 4 pairs or
-    where the intervals do not vary)."""
+    where the intervals do not vary); ``times``: :func:`spike_times` of ``spikes`` if already computed."""
     P = int(np.prod(spikes.shape[1:]))
-    pix, t = spike_times(spikes)
+    pix, t = times if times is not None else spike_times(spikes)
     same2 = (pix[2:] == pix[1:-1]) & (pix[1:-1] == pix[:-2])
     a = (t[1:-1] - t[:-2])[same2].astype(np.float64)
     b = (t[2:] - t[1:-1])[same2].astype(np.float64)
