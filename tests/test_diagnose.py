@@ -514,6 +514,27 @@ def test_spike_times_and_interval_moments_are_those_of_the_intervals():
             assert np.array_equal(got, want, equal_nan=True), (T, H, W)
 
 
+def test_fit_window_stats_are_the_separate_reads():
+    """bands.fit_window_stats (one read; the halves' rates from the spike times) gives the numbers
+    of bands.pixel_stats and bands.window_rate of the two halves."""
+    from spikegen.fidelity import bands
+
+    rng = np.random.default_rng(6)
+    for T, H, W, p, Tf in [(60, 16, 8, 0.3, 48), (501, 16, 16, 0.05, 401), (200, 24, 8, 0.0, 160)]:
+        s = (rng.random((T, H, W)) < p * 2 * rng.random((1, H, W))).astype(np.uint8)
+        s[: Tf // 2, 0, :3] = 0  # pixels with no spike in the first half
+        s[Tf // 2:, 1, :3] = 0  # ... in the second
+        s[Tf // 2 - 1, 2, 0] = s[Tf // 2, 2, 1] = 1
+        stream = bands.Stream.of(s)
+        got, halves = bands.fit_window_stats(stream, 8, Tf)
+        want = bands.pixel_stats(stream, 8, 0, Tf)
+        for name in ("n", "first", "last", "rate", "isi_mean", "isi_var", "span_var", "isi_min", "single", "ones",
+                     "n_isi", "diff_var"):
+            assert np.array_equal(getattr(got, name), getattr(want, name), equal_nan=True), name
+        assert np.array_equal(halves[0], bands.window_rate(stream, 8, 0, Tf // 2))
+        assert np.array_equal(halves[1], bands.window_rate(stream, 8, Tf // 2, Tf))
+
+
 def test_simulation_memo_gives_the_recomputed_diagnosis(monkeypatch):
     """A model simulated twice is simulated once (bands.simulation_pass, ctx.passes): the same JSON
     as a diagnosis that simulates every pass anew, with fewer simulations."""

@@ -338,6 +338,23 @@ def pixel_stats(stream: Stream, rows: int, t0: int = 0, t1: int | None = None, c
     return join_stats(parts)
 
 
+def fit_window_stats(stream: Stream, rows: int, Tf: int) -> tuple[stats.PixelStats, tuple]:
+    """``(pixel_stats(stream, rows, 0, Tf), (window_rate of frames 0:Tf // 2, of Tf // 2:Tf))``,
+    the same numbers, in one read of the fit window (the rates of the halves from its spike times,
+    stats.split_window_rates)."""
+    parts, first, second = [], [], []
+    for r0, r1 in bands(stream.shape[1], rows):
+        band = stream.rows(r0, r1, 0, Tf)
+        times = stats.spike_times(band)
+        p = stats.pixel_stats(band, times=times)
+        p.isi_values = None
+        parts.append(p)
+        a, b = stats.split_window_rates(times, p.n.size, band.shape[0], Tf // 2)
+        first.append(a)
+        second.append(b)
+    return join_stats(parts), (np.concatenate(first), np.concatenate(second))
+
+
 def join_stats(parts: list) -> stats.PixelStats:
     """One stats.PixelStats of the pixels of ``parts`` (band by band, top to bottom); their
     ``isi_values`` joined (None if any is None)."""

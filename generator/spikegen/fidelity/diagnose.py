@@ -226,9 +226,7 @@ def _context(spikes: bands.Stream, radiance, intensity: float, baseline: Sensor,
     """Timing statistics of the first ``Tf`` frames (read in bands of ``rows`` rows) and the
     reference radiance ``[K, H, W]``."""
     T, H, W = spikes.shape
-    meas = bands.pixel_stats(spikes, rows, 0, Tf)
-    half = Tf // 2
-    halves = (bands.window_rate(spikes, rows, 0, half), bands.window_rate(spikes, rows, half, Tf))
+    meas, halves = bands.fit_window_stats(spikes, rows, Tf)  # halves: the rates of its two halves
     self_ref = isinstance(radiance, str)
     motion = drift.image_motion(spikes, rows, Tf) if self_ref else None
     if self_ref and motion.significant:

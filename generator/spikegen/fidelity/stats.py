@@ -219,6 +219,28 @@ def window_rate(spikes: np.ndarray) -> np.ndarray:
         return np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
 
 
+def split_window_rates(times: tuple, P: int, T: int, cut: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`window_rate` of frames ``0:cut`` and of frames ``cut:T`` of a stream of ``T`` frames and
+    ``P`` pixels whose :func:`spike_times` are ``times`` (the same numbers, from the spike times:
+    each pixel's spikes on either side of ``cut`` by bisection)."""
+    pix, t = times
+    key = pix * T + t  # sorted, as spike_times orders them
+    base = np.arange(P, dtype=np.int64) * T
+    starts, ends = np.searchsorted(key, base), np.searchsorted(key, base + T)
+    split = np.searchsorted(key, base + cut)
+    last_index = max(t.size - 1, 0)
+
+    def rate(lo, hi, length):
+        n = hi - lo
+        if t.size == 0:
+            return (n / length).astype(np.float64)
+        first, last = t[np.minimum(lo, last_index)], t[np.clip(hi - 1, 0, last_index)]
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / length).astype(np.float64)
+
+    return rate(starts, split, cut), rate(split, ends, T - cut)
+
+
 def excess_interval_var(meas: PixelStats, noisy: np.ndarray | None = None) -> np.ndarray:
     """Interval variance beyond frame quantisation, ``[P]`` frames**2 (NaN where unknown).
 
