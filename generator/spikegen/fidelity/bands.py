@@ -86,14 +86,19 @@ def simulated_bands(ctx: Context, sensor: Sensor, rows: int):
     """``(r0, r1, rows r0:r1 of the simulation)`` for each band of ``rows`` rows: simulated a
     block of several bands at a time (up to SIM_BYTES), since the simulator steps through the
     frames in Python and a block of few pixels would spend its time there."""
+    for b0, b1, sim in simulated_blocks(ctx, sensor, rows):
+        for r0, r1 in bands(b1 - b0, rows):
+            yield b0 + r0, b0 + r1, sim[:, r0:r1]
+        del sim
+
+
+def simulated_blocks(ctx: Context, sensor: Sensor, rows: int):
+    """``(b0, b1, rows b0:b1 of the simulation)`` for each block of :func:`simulated_bands`."""
     T, (H, W) = ctx.frames, ctx.shape
     block = max(rows, (SIM_BYTES // max(T * W, 1)) // rows * rows)
     for b0 in range(0, H, block):
         b1 = min(H, b0 + block)
-        sim = simulate_rows(ctx, sensor, b0, b1)
-        for r0, r1 in bands(b1 - b0, rows):
-            yield b0 + r0, b0 + r1, sim[:, r0:r1]
-        del sim
+        yield b0, b1, simulate_rows(ctx, sensor, b0, b1)
 
 
 def simulation_key(sensor: Sensor, shape: tuple) -> str:
@@ -147,17 +152,25 @@ def _simulate_and_reduce(ctx: Context, sensor: Sensor, score: bool, measures: bo
     held = _HeldOutScore(ctx, sensor) if score else None
     acc = _Accumulators(P, T - Tf) if (measures or checks) else None
     fit = _FitWindow(ctx, window.get("mask")) if window is not None else None
-    for r0, r1, sim in simulated_bands(ctx, sensor, rows):
-        sl = slice(r0 * W, r1 * W)
-        if held is not None or acc is not None:
-            meas = ctx.spikes.rows(r0, r1, Tf)
-            band = _Band(meas, sim)  # what both reductions take of the band, made once
-            if held is not None:
-                held.add(sl, band)
-            if acc is not None:
-                acc.add(sl, band, mask[sl], static_ref, checks)
-        if fit is not None:
-            fit.add(r0, r1, sim[:Tf])
+    for b0, b1, block in simulated_blocks(ctx, sensor, rows):
+        # the simulated intervals' moments of the whole block at once (a pass over its frames)
+        moments = (stats.interval_moments_by_frame(block)
+                   if held is not None and held.modulation is None else None)
+        for a0, a1 in bands(b1 - b0, rows):
+            r0, r1, sim = b0 + a0, b0 + a1, block[:, a0:a1]
+            sl = slice(r0 * W, r1 * W)
+            if held is not None or acc is not None:
+                meas = ctx.spikes.rows(r0, r1, Tf)
+                band = _Band(meas, sim)  # what both reductions take of the band, made once
+                if moments is not None:
+                    band.put("moments", tuple(m[a0 * W: a1 * W] for m in moments))
+                if held is not None:
+                    held.add(sl, band)
+                if acc is not None:
+                    acc.add(sl, band, mask[sl], static_ref, checks)
+            if fit is not None:
+                fit.add(r0, r1, sim[:Tf])
+        del block
     out = {}
     if held is not None:
         out["score"] = held.finish()
@@ -173,8 +186,8 @@ def _simulate_and_reduce(ctx: Context, sensor: Sensor, score: bool, measures: bo
 class _Band:
     """A band's measured held-out frames ``meas [Th, rows, W]`` and simulation ``sim [T, rows, W]``,
     with what the held-out score and the accumulators both take of them (window counts, count
-    variances, spike times), each computed on first use and then kept (the same arrays: none is
-    changed in place by its users)."""
+    variances, spike times, interval moments), each computed on first use (or :meth:`put` from
+    its block) and then kept (the same arrays: none is changed in place by its users)."""
 
     def __init__(self, meas: np.ndarray, sim: np.ndarray):
         self.meas, self.sim = meas, sim
@@ -185,6 +198,14 @@ class _Band:
         if key not in self._memo:
             self._memo[key] = make()
         return self._memo[key]
+
+    def put(self, key, value) -> None:
+        """Keep ``value`` as what ``key`` would compute (from a larger block: the same numbers)."""
+        self._memo[key] = value
+
+    def moments(self) -> tuple:
+        """stats.interval_moments of the whole simulation."""
+        return self._get("moments", lambda: stats.interval_moments(self.sim))
 
     def windows(self, which: str, w: int) -> np.ndarray:
         """heldout.window_counts of ``"meas"`` or ``"held"`` (the simulation's held-out frames)."""
@@ -222,7 +243,7 @@ class _HeldOutScore:
         T, Th = sim.shape[0], meas.shape[0]
         band_mask = self.ctx.static[sl]
         if self.modulation is None:
-            self.interval_ll[sl] = heldout._interval_loglik(meas, stats.interval_moments(sim),
+            self.interval_ll[sl] = heldout._interval_loglik(meas, band.moments(),
                                                             stats.intervals(meas, times=band.times("meas")))
             band_mod = None
         else:
