@@ -170,9 +170,9 @@ def interval_moments(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 
 
 def interval_moments_by_frame(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """:func:`interval_moments` (the same bits) by a pass over the frames instead of the spikes:
-    each pixel's last spike time is carried from frame to frame and every spike adds its squared
-    interval (whole numbers, exact in float64 below 2**53); the counts and first spikes from
+    """:func:`interval_moments` of a 0/1 stream (the same bits) by a pass over the frames instead of
+    the spikes: each pixel's last spike time is carried from frame to frame and every spike adds
+    its squared interval (whole numbers, exact in float64 below 2**53); the counts and first spikes from
     windows of FIRST_WINDOW frames (:func:`counts_and_first_spikes`). Cheaper than listing the
     spikes for a block of many pixels (a simulated block of rows)."""
     T = spikes.shape[0]
