@@ -540,6 +540,20 @@ def test_fit_window_stats_are_the_separate_reads():
         assert np.array_equal(halves[1], bands.window_rate(stream, 8, Tf // 2, Tf))
 
 
+def test_masked_frame_sums_are_the_plain_sums():
+    """bands.masked_frame_sums (a float32 matrix product) gives the whole-number sums of the masked
+    pixels of each frame, in blocks of frames and with every pixel firing."""
+    from spikegen.fidelity import bands
+
+    rng = np.random.default_rng(7)
+    for T, P, p in [(1, 5, 0.5), (3000, 700, 0.2), (50, 9000, 1.0)]:
+        flat = (rng.random((T, P)) < p).astype(np.uint8)
+        masks = [rng.random(P) < 0.3, np.zeros(P, dtype=bool), np.ones(P, dtype=bool)]
+        got = bands.masked_frame_sums(flat, masks)
+        want = np.stack([flat[:, m].sum(axis=1, dtype=np.int64) for m in masks], axis=1)
+        assert got.dtype == np.int64 and np.array_equal(got, want), (T, P)
+
+
 def test_simulation_memo_gives_the_recomputed_diagnosis(monkeypatch):
     """A model simulated twice is simulated once (bands.simulation_pass, ctx.passes): the same JSON
     as a diagnosis that simulates every pass anew, with fewer simulations."""

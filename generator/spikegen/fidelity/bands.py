@@ -403,13 +403,32 @@ def population_signals(stream: Stream, masks: list, rows: int, t0: int = 0, t1: 
     """:func:`population_signal` of each mask of ``masks`` (``[P]`` each), in one read of the stream."""
     W = stream.shape[2]
     masks = [np.asarray(m).reshape(-1) for m in masks]
-    totals = [0] * len(masks)
+    total = 0
     for r0, r1 in bands(stream.shape[1], rows):
         band = stream.rows(r0, r1, t0, t1)
-        flat = band.reshape(band.shape[0], -1)
-        for i, mask in enumerate(masks):
-            totals[i] = totals[i] + flat[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
-    return [np.asarray(total).astype(np.float64) for total in totals]
+        total = total + masked_frame_sums(band.reshape(band.shape[0], -1), [m[r0 * W: r1 * W] for m in masks])
+    return [total[:, i].astype(np.float64) for i in range(len(masks))]
+
+
+MATMUL_FRAMES = 2048  # frames converted to float32 at a time by masked_frame_sums
+
+
+def masked_frame_sums(flat: np.ndarray, masks: list) -> np.ndarray:
+    """``int64 [T, len(masks)]``: the spikes of each frame of ``flat [T, P]`` (0/1) summed over the
+    pixels of each mask ``[P]``. A matrix product with the masks in float32, a block of frames at a
+    time: every partial sum is a whole number below 2**24 (at most ``P`` ones), so exact in any
+    order (BLAS threads included) and the same as summing the masked pixels one by one."""
+    T, P = flat.shape
+    if P >= 1 << 24:
+        return np.stack([flat[:, m].sum(axis=1, dtype=np.int64) for m in masks], axis=1)
+    onehot = np.stack(masks, axis=1).astype(np.float32)
+    out = np.empty((T, len(masks)), dtype=np.float32)
+    buf = np.empty((min(T, MATMUL_FRAMES), P), dtype=np.float32)
+    for f0 in range(0, T, MATMUL_FRAMES):
+        f1 = min(T, f0 + MATMUL_FRAMES)
+        np.copyto(buf[: f1 - f0], flat[f0:f1])
+        np.matmul(buf[: f1 - f0], onehot, out=out[f0:f1])
+    return out.astype(np.int64)
 
 
 def quadrant_counts(stream: Stream, mask: np.ndarray, rows: int, t1: int) -> np.ndarray:
@@ -459,8 +478,8 @@ class _FitWindow:
         self.parts.append(p)
         if self.mask is not None:
             self.quads = self.quads + stats.quadrant_counts(band, self.mask, top=r0, height=H)
-            self.signal = self.signal + band.reshape(band.shape[0], -1)[:, self.mask[r0 * W: r1 * W]].sum(
-                axis=1, dtype=np.int64)
+            self.signal = self.signal + masked_frame_sums(band.reshape(band.shape[0], -1),
+                                                          [self.mask[r0 * W: r1 * W]])[:, 0]
 
     def finish(self) -> dict:
         out = {"stats": join_stats(self.parts)}
