@@ -499,8 +499,9 @@ def test_exact_sums_are_numpys_reductions_bit_for_bit():
 
 def test_spike_times_and_interval_moments_are_those_of_the_intervals():
     """stats.spike_times against a plain transpose and division; stats.interval_moments (sums of
-    whole numbers from first and last spikes) and interval_moments_by_frame bit for bit against
-    pixel_stats (grouped_var of every interval), with pixels of no, one, two and many spikes."""
+    whole numbers from first and last spikes), interval_moments_by_frame and interval_variances
+    bit for bit against pixel_stats (grouped_var of every interval), with pixels of no, one, two
+    and many spikes."""
     rng = np.random.default_rng(5)
     for T, H, W, p in [(1, 2, 2, 0.5), (7, 1, 1, 0.0), (50, 3, 4, 0.05), (200, 5, 7, 0.3), (3000, 8, 40, 0.2),
                        (64, 3, 3, 0.02), (130, 4, 4, 0.004)]:  # first spikes after the last whole window of 64
@@ -517,6 +518,10 @@ def test_spike_times_and_interval_moments_are_those_of_the_intervals():
             assert np.array_equal(got, want, equal_nan=True), (T, H, W)
         n, first = stats.counts_and_first_spikes(s.reshape(T, -1))
         assert np.array_equal(n, ps.n) and np.array_equal(first[n > 0], ps.first[n > 0]), (T, H, W)
+        iv = stats.interval_variances(s)
+        for name in ("n", "first", "last", "rate", "isi_mean", "isi_var", "span_var", "n_isi", "diff_var"):
+            got, want = getattr(iv, name), getattr(ps, name)
+            assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True), (name, T, H, W)
 
 
 def test_fit_window_stats_are_the_separate_reads():

@@ -124,8 +124,8 @@ def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: boo
 def simulation_pass(ctx: Context, sensor: Sensor, score: bool = True, measures: bool = False, checks: bool = False,
                     window: dict | None = None) -> dict:
     """:func:`model_pass` (``"score"`` only with ``score``), and with ``window`` (``{"mask": [P]
-    or None}``) also ``"window"``: what :func:`fit_window_pass` returns of the simulation's fit
-    window, from the same simulation. The score, measures and checks of each simulation are kept
+    or None, "timing": as fit_window_pass}``) also ``"window"``: what :func:`fit_window_pass`
+    returns of the simulation's fit window, from the same simulation. The score, measures and checks of each simulation are kept
     in ``ctx.passes`` (by :func:`simulation_key`): a pass simulates only if something asked for
     is not there, and computes only what is not there."""
     key = simulation_key(sensor, ctx.shape)
@@ -151,7 +151,7 @@ def _simulate_and_reduce(ctx: Context, sensor: Sensor, score: bool, measures: bo
     mask = ctx.static
     held = _HeldOutScore(ctx, sensor) if score else None
     acc = _Accumulators(P, T - Tf) if (measures or checks) else None
-    fit = _FitWindow(ctx, window.get("mask")) if window is not None else None
+    fit = _FitWindow(ctx, window.get("mask"), timing=window.get("timing", "all")) if window is not None else None
     for b0, b1, block in simulated_blocks(ctx, sensor, rows):
         # the simulated intervals' moments of the whole block at once (a pass over its frames)
         moments = (stats.interval_moments_by_frame(block)
@@ -438,18 +438,19 @@ def quadrant_counts(stream: Stream, mask: np.ndarray, rows: int, t1: int) -> np.
 
 
 def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | None = None,
-                    clock_mask: np.ndarray | None = None, score: bool = False) -> dict:
+                    clock_mask: np.ndarray | None = None, score: bool = False, timing: str | None = "all") -> dict:
     """Of ``sensor``'s simulation's fit window (its first ``Tf`` frames), band by band:
-    ``"stats"`` (stats.pixel_stats, without ``isi_values``), with ``mask [P]`` also ``"quadrants"``
-    (stats.quadrant_counts) and ``"signal"`` (stats.population_signal over ``mask``), with
-    ``clock_mask`` the stats measured on the population clock of those pixels instead (two passes).
-    With ``score`` (``rows`` those of the context, no ``clock_mask``) the same simulation's
-    held-out score is computed too and kept for :func:`model_pass`, which then need not simulate
-    the sensor again (:func:`simulation_pass`)."""
+    ``"stats"`` (stats.pixel_stats, without ``isi_values``; with ``timing="variances"`` only the
+    fields of stats.interval_variances, cheaper; with None no ``"stats"``), with ``mask [P]`` also
+    ``"quadrants"`` (stats.quadrant_counts) and ``"signal"`` (stats.population_signal over
+    ``mask``), with ``clock_mask`` all the stats measured on the population clock of those pixels
+    instead (two passes). With ``score`` (``rows`` those of the context, no ``clock_mask``) the same
+    simulation's held-out score is computed too and kept for :func:`model_pass`, which then need
+    not simulate the sensor again (:func:`simulation_pass`)."""
     H, W = ctx.shape
     Tf = ctx.Tf
     if clock_mask is None and rows == ctx.rows:
-        return simulation_pass(ctx, sensor, score=score, window={"mask": mask})["window"]
+        return simulation_pass(ctx, sensor, score=score, window={"mask": mask, "timing": timing})["window"]
     clock = None
     if clock_mask is not None:
         signal = 0
@@ -466,23 +467,29 @@ def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | 
 class _FitWindow:
     """What :func:`fit_window_pass` returns, band by band."""
 
-    def __init__(self, ctx: Context, mask: np.ndarray | None, clock: np.ndarray | None = None):
-        self.shape, self.mask, self.clock = ctx.shape, mask, clock
+    def __init__(self, ctx: Context, mask: np.ndarray | None, clock: np.ndarray | None = None,
+                 timing: str | None = "all"):
+        if timing not in ("all", "variances", None) or (clock is not None and timing != "all"):
+            raise ValueError(f"timing must be 'all', 'variances' or None (with a clock 'all'), got {timing!r}")
+        self.shape, self.mask, self.clock, self.timing = ctx.shape, mask, clock, timing
         self.parts, self.quads, self.signal = [], 0, 0
 
     def add(self, r0: int, r1: int, band: np.ndarray) -> None:
         """Rows ``r0:r1`` of the fit window, ``band [Tf, r1 - r0, W]``."""
         H, W = self.shape
-        p = stats.pixel_stats(band, self.clock)
-        p.isi_values = None
-        self.parts.append(p)
+        if self.timing == "all":
+            p = stats.pixel_stats(band, self.clock)
+            p.isi_values = None
+            self.parts.append(p)
+        elif self.timing == "variances":
+            self.parts.append(stats.interval_variances(band))
         if self.mask is not None:
             self.quads = self.quads + stats.quadrant_counts(band, self.mask, top=r0, height=H)
             self.signal = self.signal + masked_frame_sums(band.reshape(band.shape[0], -1),
                                                           [self.mask[r0 * W: r1 * W]])[:, 0]
 
     def finish(self) -> dict:
-        out = {"stats": join_stats(self.parts)}
+        out = {"stats": join_stats(self.parts)} if self.timing is not None else {}
         if self.mask is not None:
             out["quadrants"], out["signal"] = self.quads, np.asarray(self.signal).astype(np.float64)
         return out

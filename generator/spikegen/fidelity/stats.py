@@ -169,6 +169,49 @@ def interval_moments(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     return _moments(cnt, s1, s2, 3)
 
 
+def interval_variances(spikes: np.ndarray) -> PixelStats:
+    """The :func:`pixel_stats` (frames as the clock, the same bits) that
+    :func:`excess_interval_var` takes: ``n``, ``first``, ``last``, ``rate``, ``isi_mean``,
+    ``isi_var``, ``n_isi``, ``span_var`` and ``diff_var``; the others are None. Every sum of
+    :func:`grouped_var` here adds whole numbers (intervals, their differences, their spans),
+    so it is taken exactly from running sums over the pixel-major spike indices, each pixel's
+    range of them, without sorting the values out by pixel."""
+    idx, starts, T = _pixel_major_spikes(spikes)
+    P = starts.size - 1
+    n = np.diff(starts)
+    lo = starts[:-1]
+    has = n > 0
+    base = np.arange(P, dtype=np.int64) * T
+    first, last = np.full(P, -1, dtype=np.int64), np.full(P, -1, dtype=np.int64)
+    first[has] = idx[lo[has]] - base[has]
+    last[has] = idx[starts[1:][has] - 1] - base[has]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
+    d = np.diff(idx)  # within a pixel: its intervals
+    entry = lo[has & (lo > 0)]
+    d[entry - 1] = 0  # no interval across pixels (keeps the running sums small)
+    dd = np.diff(d)  # within a pixel's range: differences of consecutive intervals
+    span = np.minimum(idx[MAX_SPAN:] - idx[:-MAX_SPAN], T)  # within a pixel's range: spans of MAX_SPAN intervals
+
+    def moments(v, k):
+        """grouped_var of ``v`` over each pixel's range ``[lo, lo + n - k)`` (``n - k`` values)."""
+        cnt = np.maximum(n - k, 0)
+        hi = lo + cnt
+        ok = cnt > 0
+        s1, s2 = np.zeros(P), np.zeros(P)
+        for out, x in ((s1, v), (s2, v * v)):
+            c = np.zeros(x.size + 1, dtype=np.int64)
+            np.cumsum(x, out=c[1:])
+            out[ok] = (c[hi[ok]] - c[lo[ok]]).astype(np.float64)
+        return _moments(cnt.astype(np.float64), s1, s2, 3)
+
+    isi_mean, isi_var, n_isi = moments(d, 1)
+    _, diff_var, n_d = moments(dd, 2)
+    diff_var = diff_var / (1.0 + 1.0 / np.maximum(n_d, 1))  # as pixel_stats
+    _, span_var, _ = moments(span, MAX_SPAN)
+    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, None, None, None, n_isi, None, diff_var)
+
+
 def interval_moments_by_frame(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """:func:`interval_moments` of a 0/1 stream (the same bits) by a pass over the frames instead of
     the spikes: each pixel's last spike time is carried from frame to frame and every spike adds
