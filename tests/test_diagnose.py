@@ -518,6 +518,14 @@ def test_spike_times_and_interval_moments_are_those_of_the_intervals():
             assert np.array_equal(got, want, equal_nan=True), (T, H, W)
         n, first = stats.counts_and_first_spikes(s.reshape(T, -1))
         assert np.array_equal(n, ps.n) and np.array_equal(first[n > 0], ps.first[n > 0]), (T, H, W)
+        # with frames as the clock pixel_stats sums whole numbers over pixel ranges (stats.frame_stats):
+        # the same bits as on a clock that counts the frames (the general path, grouped_var)
+        general = stats.pixel_stats(s, clock=np.arange(T, dtype=np.float64))
+        for got in (ps, stats.pixel_stats(s, times=stats.spike_times(s))):
+            for name in ("n", "first", "last", "rate", "isi_mean", "isi_var", "span_var", "isi_min", "single", "ones",
+                         "n_isi", "isi_values", "diff_var"):
+                a, b = getattr(got, name), getattr(general, name)
+                assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), (name, T, H, W)
         iv = stats.interval_variances(s)
         for name in ("n", "first", "last", "rate", "isi_mean", "isi_var", "span_var", "n_isi", "diff_var"):
             got, want = getattr(iv, name), getattr(ps, name)

@@ -353,24 +353,20 @@ class _Accumulators:
 def pixel_stats(stream: Stream, rows: int, t0: int = 0, t1: int | None = None, clock=None) -> stats.PixelStats:
     """stats.pixel_stats of frames ``t0:t1`` of ``stream``, band by band (the same numbers), but
     without the pooled intervals (``isi_values`` is None: they are as many as the spikes)."""
-    parts = [stats.pixel_stats(stream.rows(r0, r1, t0, t1), clock) for r0, r1 in bands(stream.shape[1], rows)]
-    for p in parts:
-        p.isi_values = None
-    return join_stats(parts)
+    return join_stats([stats.pixel_stats(stream.rows(r0, r1, t0, t1), clock, values=False)
+                       for r0, r1 in bands(stream.shape[1], rows)])
 
 
 def fit_window_stats(stream: Stream, rows: int, Tf: int) -> tuple[stats.PixelStats, tuple]:
     """``(pixel_stats(stream, rows, 0, Tf), (window_rate of frames 0:Tf // 2, of Tf // 2:Tf))``,
-    the same numbers, in one read of the fit window (the rates of the halves from its spike times,
-    stats.split_window_rates)."""
+    the same numbers, in one read of the fit window (the rates of the halves from its spike
+    indices, stats.split_window_rates)."""
     parts, first, second = [], [], []
     for r0, r1 in bands(stream.shape[1], rows):
         band = stream.rows(r0, r1, 0, Tf)
-        times = stats.spike_times(band)
-        p = stats.pixel_stats(band, times=times)
-        p.isi_values = None
-        parts.append(p)
-        a, b = stats.split_window_rates(times, p.n.size, band.shape[0], Tf // 2)
+        idx, starts, T = stats.pixel_major_spikes(band)
+        parts.append(stats.frame_stats(idx, starts, T, extremes=True, values=False))
+        a, b = stats.split_window_rates(idx, starts, T, Tf // 2)
         first.append(a)
         second.append(b)
     return join_stats(parts), (np.concatenate(first), np.concatenate(second))
@@ -478,9 +474,7 @@ class _FitWindow:
         """Rows ``r0:r1`` of the fit window, ``band [Tf, r1 - r0, W]``."""
         H, W = self.shape
         if self.timing == "all":
-            p = stats.pixel_stats(band, self.clock)
-            p.isi_values = None
-            self.parts.append(p)
+            self.parts.append(stats.pixel_stats(band, self.clock, values=False))
         elif self.timing == "variances":
             self.parts.append(stats.interval_variances(band))
         if self.mask is not None:

@@ -51,12 +51,12 @@ class PixelStats:
 
 def spike_times(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(pixel, frame)`` of every spike, sorted by pixel then frame (``int64 [N]`` each)."""
-    idx, starts, T = _pixel_major_spikes(spikes)
+    idx, starts, T = pixel_major_spikes(spikes)
     pix = np.repeat(np.arange(starts.size - 1, dtype=np.int64), np.diff(starts))
     return pix, idx - pix * T
 
 
-def _pixel_major_spikes(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+def pixel_major_spikes(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
     """``(idx [N], starts [P + 1], T)``: ``idx = pixel * T + frame`` of every spike, sorted (pixel
     major), and where each pixel's spikes start in it (pixel ``p``: ``idx[starts[p]:starts[p + 1]]``)."""
     T = spikes.shape[0]
@@ -93,13 +93,23 @@ def _moments(cnt, s1, s2, min_count):
     return mean, var, cnt
 
 
-def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None, times: tuple | None = None) -> PixelStats:
+def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None, times: tuple | None = None,
+                values: bool = True) -> PixelStats:
     """Timing statistics of every pixel of ``spikes [T, H, W]`` (see :class:`PixelStats`).
     ``clock [T]``: the time of each frame to measure intervals in (``isi_mean``, ``isi_var``,
     ``span_var``, ``diff_var``, ``isi_values``; :func:`population_clock`); None: frames.
-    ``times``: :func:`spike_times` of ``spikes`` if already computed."""
+    ``times``: :func:`spike_times` of ``spikes`` if already computed. ``values`` False: no
+    ``isi_values`` (None). With frames as the clock every sum is of whole numbers and comes from
+    running sums over the pixel-major spike indices (:func:`frame_stats`): the same bits."""
     T = spikes.shape[0]
     P = int(np.prod(spikes.shape[1:]))
+    if clock is None:
+        if times is None:
+            idx, starts, _ = pixel_major_spikes(spikes)
+        else:
+            idx = times[0] * T + times[1]
+            starts = np.searchsorted(idx, np.arange(P + 1, dtype=np.int64) * T)
+        return frame_stats(idx, starts, T, extremes=True, values=values)
     pix, t = times if times is not None else spike_times(spikes)
     n = np.bincount(pix, minlength=P)
     ends = np.cumsum(n)
@@ -130,8 +140,8 @@ def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None, times: tupl
     isi_min, isi_max = _isi_extremes(frames_isi, isi_pix, P)
     ones = np.bincount(isi_pix, weights=(frames_isi == 1).astype(np.float64), minlength=P)
     single = (n_isi >= 3) & (isi_min == isi_max)
-    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi,
-                      diff_var)
+    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi,
+                      isi if values else None, diff_var)
 
 
 def intervals(spikes: np.ndarray, times: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
@@ -150,7 +160,7 @@ def interval_moments(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
     first and last spike and from a running sum of squared differences of the spike indices
     (pixel major: within a pixel they are its intervals), without sorting the intervals out by
     pixel; the same formulas on the same sums give the same bits."""
-    idx, starts, _ = _pixel_major_spikes(spikes)
+    idx, starts, _ = pixel_major_spikes(spikes)
     P = starts.size - 1
     n = np.diff(starts)
     sq = np.zeros(idx.size, dtype=np.int64)  # sq[k]: sum of squared differences of idx[0..k]
@@ -172,11 +182,18 @@ def interval_moments(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.nda
 def interval_variances(spikes: np.ndarray) -> PixelStats:
     """The :func:`pixel_stats` (frames as the clock, the same bits) that
     :func:`excess_interval_var` takes: ``n``, ``first``, ``last``, ``rate``, ``isi_mean``,
-    ``isi_var``, ``n_isi``, ``span_var`` and ``diff_var``; the others are None. Every sum of
-    :func:`grouped_var` here adds whole numbers (intervals, their differences, their spans),
-    so it is taken exactly from running sums over the pixel-major spike indices, each pixel's
-    range of them, without sorting the values out by pixel."""
-    idx, starts, T = _pixel_major_spikes(spikes)
+    ``isi_var``, ``n_isi``, ``span_var`` and ``diff_var``; the others are None (cheaper)."""
+    idx, starts, T = pixel_major_spikes(spikes)
+    return frame_stats(idx, starts, T, extremes=False, values=False)
+
+
+def frame_stats(idx: np.ndarray, starts: np.ndarray, T: int, extremes: bool, values: bool) -> PixelStats:
+    """:func:`pixel_stats` with frames as the clock from the pixel-major spike indices ``idx`` and
+    each pixel's ``starts`` in them (:func:`pixel_major_spikes`). Every sum of :func:`grouped_var`
+    adds whole numbers (intervals, their differences, their spans of MAX_SPAN intervals), so it is
+    taken exactly from running sums over each pixel's range of them, without sorting the values
+    out by pixel. ``extremes`` False: no ``isi_min``, ``single``, ``ones``; ``values`` False: no
+    ``isi_values`` (None)."""
     P = starts.size - 1
     n = np.diff(starts)
     lo = starts[:-1]
@@ -188,28 +205,50 @@ def interval_variances(spikes: np.ndarray) -> PixelStats:
     with np.errstate(invalid="ignore", divide="ignore"):
         rate = np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
     d = np.diff(idx)  # within a pixel: its intervals
-    entry = lo[has & (lo > 0)]
-    d[entry - 1] = 0  # no interval across pixels (keeps the running sums small)
+    cross = lo[has & (lo > 0)] - 1  # the differences across two pixels
+    d[cross] = 0  # (keeps the running sums small; never inside a pixel's range)
     dd = np.diff(d)  # within a pixel's range: differences of consecutive intervals
     span = np.minimum(idx[MAX_SPAN:] - idx[:-MAX_SPAN], T)  # within a pixel's range: spans of MAX_SPAN intervals
 
-    def moments(v, k):
-        """grouped_var of ``v`` over each pixel's range ``[lo, lo + n - k)`` (``n - k`` values)."""
+    def range_sums(x, k):
+        """The sum of ``x`` over each pixel's range ``[lo, lo + n - k)``, float64 (0 if empty)."""
         cnt = np.maximum(n - k, 0)
-        hi = lo + cnt
         ok = cnt > 0
-        s1, s2 = np.zeros(P), np.zeros(P)
-        for out, x in ((s1, v), (s2, v * v)):
-            c = np.zeros(x.size + 1, dtype=np.int64)
-            np.cumsum(x, out=c[1:])
-            out[ok] = (c[hi[ok]] - c[lo[ok]]).astype(np.float64)
-        return _moments(cnt.astype(np.float64), s1, s2, 3)
+        c = np.zeros(x.size + 1, dtype=np.int64)
+        np.cumsum(x, out=c[1:])
+        out = np.zeros(P)
+        out[ok] = (c[lo[ok] + cnt[ok]] - c[lo[ok]]).astype(np.float64)
+        return out
+
+    def moments(x, k):
+        """grouped_var of ``x`` over each pixel's range (``n - k`` values)."""
+        return _moments(np.maximum(n - k, 0).astype(np.float64), range_sums(x, k), range_sums(x * x, k), 3)
 
     isi_mean, isi_var, n_isi = moments(d, 1)
     _, diff_var, n_d = moments(dd, 2)
     diff_var = diff_var / (1.0 + 1.0 / np.maximum(n_d, 1))  # as pixel_stats
     _, span_var, _ = moments(span, MAX_SPAN)
-    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, None, None, None, n_isi, None, diff_var)
+    isi_min = single = ones = None
+    if extremes:
+        two = n >= 2
+        isi_min, isi_max = np.zeros(P), np.zeros(P)
+        if two.any():  # a pixel's range up to the next pixel with intervals: its own, then differences across pixels
+            heads = lo[two]
+            d_min = d.copy()
+            d_min[cross] = np.iinfo(np.int64).max
+            isi_min[two] = np.minimum.reduceat(d_min, heads)
+            isi_max[two] = np.maximum.reduceat(d, heads)  # (0 across pixels)
+            ones = range_sums(d == 1, 1)
+        else:  # as pixel_stats: np.bincount of no intervals gives whole numbers
+            ones = np.zeros(P, dtype=np.int64)
+        single = (n_isi >= 3) & (isi_min == isi_max)
+    isi_values = None
+    if values:
+        inside = np.ones(d.size, dtype=bool)
+        inside[cross] = False
+        isi_values = d[inside].astype(np.float64)
+    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi_values,
+                      diff_var)
 
 
 def interval_moments_by_frame(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -317,26 +356,24 @@ def window_rate(spikes: np.ndarray) -> np.ndarray:
         return np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
 
 
-def split_window_rates(times: tuple, P: int, T: int, cut: int) -> tuple[np.ndarray, np.ndarray]:
-    """:func:`window_rate` of frames ``0:cut`` and of frames ``cut:T`` of a stream of ``T`` frames and
-    ``P`` pixels whose :func:`spike_times` are ``times`` (the same numbers, from the spike times:
-    each pixel's spikes on either side of ``cut`` by bisection)."""
-    pix, t = times
-    key = pix * T + t  # sorted, as spike_times orders them
+def split_window_rates(idx: np.ndarray, starts: np.ndarray, T: int, cut: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`window_rate` of frames ``0:cut`` and of frames ``cut:T`` of a stream of ``T`` frames
+    whose spikes are ``idx`` and ``starts`` (:func:`pixel_major_spikes`): the same numbers, each
+    pixel's spikes on either side of ``cut`` found by bisection."""
+    P = starts.size - 1
     base = np.arange(P, dtype=np.int64) * T
-    starts, ends = np.searchsorted(key, base), np.searchsorted(key, base + T)
-    split = np.searchsorted(key, base + cut)
-    last_index = max(t.size - 1, 0)
+    split = np.searchsorted(idx, base + cut)
+    last_index = max(idx.size - 1, 0)
 
     def rate(lo, hi, length):
         n = hi - lo
-        if t.size == 0:
+        if idx.size == 0:
             return (n / length).astype(np.float64)
-        first, last = t[np.minimum(lo, last_index)], t[np.clip(hi - 1, 0, last_index)]
+        first, last = idx[np.minimum(lo, last_index)] - base, idx[np.clip(hi - 1, 0, last_index)] - base
         with np.errstate(invalid="ignore", divide="ignore"):
             return np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / length).astype(np.float64)
 
-    return rate(starts, split, cut), rate(split, ends, T - cut)
+    return rate(starts[:-1], split, cut), rate(split, starts[1:], T - cut)
 
 
 def excess_interval_var(meas: PixelStats, noisy: np.ndarray | None = None) -> np.ndarray:
