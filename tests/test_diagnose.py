@@ -567,6 +567,27 @@ def test_masked_frame_sums_are_the_plain_sums():
         assert got.dtype == np.int64 and np.array_equal(got, want), (T, P)
 
 
+def test_count_variance_of_whole_counts_is_that_of_their_floats():
+    """heldout.count_variance takes its window counts as int32 (no float64 copy): the same bits as
+    the variance of the float64 counts, in each of its three branches."""
+    from spikegen.fidelity import heldout
+
+    rng = np.random.default_rng(9)
+    sim = (rng.random((1200, 6, 7)) < 0.3 * rng.random((1, 6, 7))).astype(np.uint8)
+    T = sim.shape[0]
+    mod = heldout.Modulation(1.0 + 0.2 * np.sin(np.arange(T) / 9.0), rng.random(42))
+    for w in (4, 16, 64, 400):
+        wv = min(w, max(T // 12, 1))
+        c = heldout.window_counts(sim, wv)
+        rate = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
+        want = {(True, None): c.var(axis=0, ddof=1), (False, None): np.diff(c, axis=0).var(axis=0, ddof=1) / 2.0,
+                (True, mod): ((c - wv * rate[None, :] * mod.window_factor(wv, 0, c.shape[0])) ** 2).sum(axis=0)
+                / (c.shape[0] - 1)}
+        for (static, m), v in want.items():
+            got = heldout.count_variance(sim, w, static, m)
+            assert np.array_equal(got, np.maximum(v * (w / wv), heldout.VAR_FLOOR)), (w, static, m is None)
+
+
 def test_simulation_memo_gives_the_recomputed_diagnosis(monkeypatch):
     """A model simulated twice is simulated once (bands.simulation_pass, ctx.passes): the same JSON
     as a diagnosis that simulates every pass anew, with fewer simulations."""
