@@ -716,11 +716,13 @@ def test_simulated_rows_are_those_rows_of_the_whole_simulation(effects):
     from spikegen.sensor import simulate
 
     rng = np.random.default_rng(1)
-    x = synth.test_radiance(20, 24, rng)
-    sensor = synth.make_sensor(effects, 20, 24, rng)
+    x = synth.test_radiance(40, 24, rng)
+    sensor = synth.make_sensor(effects, 40, 24, rng)
     whole = simulate(x, 96.0, sensor, frames=200, seed=5)
-    for r0, r1 in ((0, 8), (8, 16), (16, 20), (8, 20)):
-        np.testing.assert_array_equal(simulate(x, 96.0, sensor, frames=200, seed=5, rows=(r0, r1)), whole[:, r0:r1])
+    for r0, r1 in ((0, 8), (8, 16), (16, 40), (8, 40)):
+        for threads in (1, 2, 3):  # rows asked for are split over the threads (one chunk a thread)
+            np.testing.assert_array_equal(simulate(x, 96.0, sensor, frames=200, seed=5, rows=(r0, r1), threads=threads),
+                                          whole[:, r0:r1])
 
 
 def test_packed_reading_is_the_unpacked_stream(tmp_path):
