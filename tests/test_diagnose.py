@@ -588,6 +588,19 @@ def test_count_variance_of_whole_counts_is_that_of_their_floats():
             assert np.array_equal(got, np.maximum(v * (w / wv), heldout.VAR_FLOOR)), (w, static, m is None)
 
 
+def test_sliding_local_median_is_the_median_of_each_window():
+    """stats._local_median (a sorted sliding window) against np.median of each frequency's window,
+    with ties and with windows that jump past each other."""
+    rng = np.random.default_rng(10)
+    for T in (50, 999, 4000):
+        freqs = (1 + np.arange(int(4 * T / 6))) / (4 * T)
+        for values in (rng.random(freqs.size) ** 3 * 1e4, np.round(rng.random(freqs.size) * 5)):
+            for rel, absolute in ((0.25, 10.0 / T), (0.01, 0.5 / T)):
+                want = [np.median(values[np.searchsorted(freqs, f - max(rel * f, absolute)):
+                                         np.searchsorted(freqs, f + max(rel * f, absolute))]) for f in freqs]
+                assert np.array_equal(stats._local_median(values, freqs, rel, absolute), want), (T, rel)
+
+
 def test_simulation_memo_gives_the_recomputed_diagnosis(monkeypatch):
     """A model simulated twice is simulated once (bands.simulation_pass, ctx.passes): the same JSON
     as a diagnosis that simulates every pass anew, with fewer simulations."""
