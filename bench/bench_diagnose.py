@@ -4,6 +4,7 @@
     python bench/bench_diagnose.py --case second    # 250 x 400 x 20000, one second of camera time
                                                     # (target: under 10 minutes and 4 GB)
     python bench/bench_diagnose.py --height 250 --width 400 --frames 2000   # any other size
+    python bench/bench_diagnose.py --keep-json d.json   # and keep the diagnosis' JSON
 
 The recording is simulated (seeded) with gain nonuniformity, dark current and shot noise
 (spikegen.fidelity.synth; N_e = 300 for `small`; 2000 for `second`, where no pixel gets fewer
@@ -120,6 +121,8 @@ def main(argv=None) -> None:
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--limit-mib", type=float, default=None, help="stop the diagnosis past this resident memory")
     ap.add_argument("--timeout", type=float, default=1800.0, help="stop the diagnosis past this many seconds")
+    ap.add_argument("--keep-json", type=Path, default=None,
+                    help="copy the diagnosis' JSON here (to compare the output of two versions)")
     args = ap.parse_args(argv)
     H, W, T, electrons, limit = CASES[args.case]
     H, W, T = args.height or H, args.width or W, args.frames or T
@@ -129,6 +132,8 @@ def main(argv=None) -> None:
         load0 = os.getloadavg()
         outcome, wall, peak, cpu = run_diagnose(Path(tmp), limit, args.timeout)
         load1 = os.getloadavg()
+        if args.keep_json is not None and (Path(tmp) / "d.json").exists():
+            args.keep_json.write_bytes((Path(tmp) / "d.json").read_bytes())
     print(f"diagnose {H}x{W}x{T} (N_e {electrons:g}): {outcome}; {wall:.1f} s ({cpu:.1f} s of CPU), "
           f"peak RSS {peak:.0f} MiB; "
           f"one simulation of the recording {sim_s:.1f} s (diagnosis / simulation {wall / sim_s:.1f}); "

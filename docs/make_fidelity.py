@@ -696,7 +696,7 @@ def main(argv=None):
     synthetic_envelope(md, args.draws)
     downstream_proxy(args.data, md)
     new_envelope(md)
-    md += [ENVELOPE_TEXT, "", HISTORY_TEXT, ""]
+    md += [ENVELOPE_TEXT, "", SPEED_TEXT, "", HISTORY_TEXT, ""]
     text = "\n".join(md).replace("RUNTIME_LINE", f"{time.time() - t0:.0f} s on {os.cpu_count()} cores")
     write_bytes_atomic(HERE / "fidelity.md", text.encode("utf-8"))
     print(f"wrote {HERE / 'fidelity.md'} in {time.time() - t0:.0f} s")
@@ -717,6 +717,43 @@ With `--reference self` only the static pixels are judged (`heldout.motion_test`
 temporal effects (`shot_noise`, `flicker`,
 `reset_to_zero`, `refractory` via missing short intervals) and, on smooth scenes, `hot_pixels`
 and `column_pattern` can be told; gain, dark current, crosstalk and nonlinearity need a reference."""
+
+
+SPEED_TEXT = """## Speed of `spikegen diagnose` (measured with bench/bench_diagnose.py, not regenerated)
+
+Issue 15's targets: 128 x 128 x 2000 frames in under a minute on 2 cores; 250 x 400 x 20000 (one
+second of camera time) in under 10 minutes and 4 GB. `python bench/bench_diagnose.py [--case
+second]` simulates the recording (gain spread, dark current, shot noise; seeded), runs the CLI in
+a child process and prints its wall and CPU time, its peak RSS, the time of one simulation of
+the recording (the yardstick: the diagnosis simulates its models itself) and the load average.
+Measured on 2026-11-25 on the shared 2-core machine (other jobs running, load 3.9-5.2), default
+threads, the version before this change (commit 7144b66) and after it one after the other:
+
+| recording | version | wall | CPU | peak RSS | diagnosis / one simulation | load before, after |
+|---|---|---|---|---|---|---|
+| 250 x 400 x 20000 | before | 711 s | 664 s | 2049 MiB | 25.6 | 4.33, 4.10 |
+| 250 x 400 x 20000 | after | 403 s | 376 s | 1787 MiB | 13.4 | 3.92, 4.42 |
+| 128 x 128 x 2000 | before | 29.9 s | 28.0 s | 417 MiB | 8.0 | 4.36, 4.99 |
+| 128 x 128 x 2000 | after | 18.6 s | 17.4 s | 372 MiB | 5.8 | 4.99, 5.21 |
+
+The JSON of both versions is the same (but for the recording's path), and so are those of 22
+seeded hidden-effect, pair, self-reference and moving-scene cases. What changed: each model's
+simulation is reduced once (`bands.simulation_pass`, kept by `bands.simulation_key`): the
+shot-noise verdict's noise-free model is scored from its fit-window pass, and the model of every
+gated effect gets its discrepancy measures and checks in its held-out pass (reused as the extended
+sensor's when all are kept), so the one second takes 5 simulations instead of 7; the rate fit's
+linear steps sum the design's columns in NumPy's own order without stacking them (the same bits,
+about 2x cheaper); timing statistics with frames as the clock come from running sums of whole
+numbers over each pixel's spike indices (`stats.frame_stats`, `interval_variances`,
+`interval_moments`; a simulated block's interval moments by one pass over its frames); the flicker
+fit reads its four groups in one pass, as a float32 product with the masks (whole numbers below
+2**24, exact); the fit window's statistics and its halves' rates in one read; the local median of
+`stats.fit_sine`, which grew with the square of the frame count, slides; `sensor.simulate` splits
+the rows asked for over its threads (a block of rows was one chunk). Peak memory is that of a
+simulated block of rows (256 MiB of spikes, twice that of noise draws); the timing statistics peak at
+0.7 GB on the one second and return to 0.3 GB (no growth from band to band). Still most of the
+time: the 5 simulations (about 30 s each on one core) and, per simulated model, the held-out
+statistics of its 20000 frames."""
 
 
 HISTORY_TEXT = """## What the hidden-effect tests caught (development log, not regenerated)

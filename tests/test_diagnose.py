@@ -476,6 +476,153 @@ def test_exact_linear_algebra_agrees_with_blas():
     assert np.allclose(exact.interpolate(w, X), w @ X)
 
 
+def test_exact_sums_are_numpys_reductions_bit_for_bit():
+    """exact.gram / matvec / normal_equations / matvec_columns add in NumPy's order: the same bits
+    as the plain reductions they replace."""
+    from spikegen.fidelity import exact
+
+    rng = np.random.default_rng(3)
+    for n in (0, 1, 7, 9, 4097, 20011):
+        for p in range(1, 10):
+            A = rng.standard_normal((n, p)) * rng.lognormal(0.0, 3.0, (n, 1))
+            b, x = rng.standard_normal(n), rng.standard_normal(p)
+            assert np.array_equal(exact.gram(A), (A[:, :, None] * A[:, None, :]).sum(axis=0)), (n, p)
+            assert np.array_equal(exact.rmatvec(A, b), (A * b[:, None]).sum(axis=0)), (n, p)
+            assert np.array_equal(exact.matvec(A, x), (A * x[None, :]).sum(axis=1)), (n, p)
+            if 2 <= p <= 7:
+                cols = [A[:, j].copy() for j in range(p)]
+                M, v = exact.normal_equations(cols, b)
+                assert np.array_equal(M, (A[:, :, None] * A[:, None, :]).sum(axis=0)), (n, p)
+                assert np.array_equal(v, (A * b[:, None]).sum(axis=0)), (n, p)
+                assert np.array_equal(exact.matvec_columns(cols, x), (A * x[None, :]).sum(axis=1)), (n, p)
+
+
+def test_spike_times_and_interval_moments_are_those_of_the_intervals():
+    """stats.spike_times against a plain transpose and division; stats.interval_moments (sums of
+    whole numbers from first and last spikes), interval_moments_by_frame and interval_variances
+    bit for bit against pixel_stats (grouped_var of every interval), with pixels of no, one, two
+    and many spikes."""
+    rng = np.random.default_rng(5)
+    for T, H, W, p in [(1, 2, 2, 0.5), (7, 1, 1, 0.0), (50, 3, 4, 0.05), (200, 5, 7, 0.3), (3000, 8, 40, 0.2),
+                       (64, 3, 3, 0.02), (130, 4, 4, 0.004)]:  # first spikes after the last whole window of 64
+        s = (rng.random((T, H, W)) < p * 2 * rng.random((1, H, W))).astype(np.uint8)
+        s[:, 0, 0] = 0
+        s[T // 2:, -1, -1] = 1
+        idx = np.flatnonzero(s.reshape(T, -1).T)
+        pix, t = stats.spike_times(s)
+        assert np.array_equal(pix, idx // T) and np.array_equal(t, idx % T) and pix.dtype == t.dtype == np.int64
+        ps = stats.pixel_stats(s)
+        for got, want in zip(stats.interval_moments(s), (ps.isi_mean, ps.isi_var, ps.n_isi)):
+            assert np.array_equal(got, want, equal_nan=True), (T, H, W)
+        for got, want in zip(stats.interval_moments_by_frame(s), (ps.isi_mean, ps.isi_var, ps.n_isi)):
+            assert np.array_equal(got, want, equal_nan=True), (T, H, W)
+        n, first = stats.counts_and_first_spikes(s.reshape(T, -1))
+        assert np.array_equal(n, ps.n) and np.array_equal(first[n > 0], ps.first[n > 0]), (T, H, W)
+        # with frames as the clock pixel_stats sums whole numbers over pixel ranges (stats.frame_stats):
+        # the same bits as on a clock that counts the frames (the general path, grouped_var)
+        general = stats.pixel_stats(s, clock=np.arange(T, dtype=np.float64))
+        for got in (ps, stats.pixel_stats(s, times=stats.spike_times(s))):
+            for name in ("n", "first", "last", "rate", "isi_mean", "isi_var", "span_var", "isi_min", "single", "ones",
+                         "n_isi", "isi_values", "diff_var"):
+                a, b = getattr(got, name), getattr(general, name)
+                assert a.dtype == b.dtype and np.array_equal(a, b, equal_nan=True), (name, T, H, W)
+        iv = stats.interval_variances(s)
+        for name in ("n", "first", "last", "rate", "isi_mean", "isi_var", "span_var", "n_isi", "diff_var"):
+            got, want = getattr(iv, name), getattr(ps, name)
+            assert got.dtype == want.dtype and np.array_equal(got, want, equal_nan=True), (name, T, H, W)
+
+
+def test_fit_window_stats_are_the_separate_reads():
+    """bands.fit_window_stats (one read; the halves' rates from the spike times) gives the numbers
+    of bands.pixel_stats and bands.window_rate of the two halves."""
+    from spikegen.fidelity import bands
+
+    rng = np.random.default_rng(6)
+    for T, H, W, p, Tf in [(60, 16, 8, 0.3, 48), (501, 16, 16, 0.05, 401), (200, 24, 8, 0.0, 160)]:
+        s = (rng.random((T, H, W)) < p * 2 * rng.random((1, H, W))).astype(np.uint8)
+        s[: Tf // 2, 0, :3] = 0  # pixels with no spike in the first half
+        s[Tf // 2:, 1, :3] = 0  # ... in the second
+        s[Tf // 2 - 1, 2, 0] = s[Tf // 2, 2, 1] = 1
+        stream = bands.Stream.of(s)
+        got, halves = bands.fit_window_stats(stream, 8, Tf)
+        want = bands.pixel_stats(stream, 8, 0, Tf)
+        for name in ("n", "first", "last", "rate", "isi_mean", "isi_var", "span_var", "isi_min", "single", "ones",
+                     "n_isi", "diff_var"):
+            assert np.array_equal(getattr(got, name), getattr(want, name), equal_nan=True), name
+        assert np.array_equal(halves[0], bands.window_rate(stream, 8, 0, Tf // 2))
+        assert np.array_equal(halves[1], bands.window_rate(stream, 8, Tf // 2, Tf))
+
+
+def test_masked_frame_sums_are_the_plain_sums():
+    """bands.masked_frame_sums (a float32 matrix product) gives the whole-number sums of the masked
+    pixels of each frame, in blocks of frames and with every pixel firing."""
+    from spikegen.fidelity import bands
+
+    rng = np.random.default_rng(7)
+    for T, P, p in [(1, 5, 0.5), (3000, 700, 0.2), (50, 9000, 1.0)]:
+        flat = (rng.random((T, P)) < p).astype(np.uint8)
+        masks = [rng.random(P) < 0.3, np.zeros(P, dtype=bool), np.ones(P, dtype=bool)]
+        got = bands.masked_frame_sums(flat, masks)
+        want = np.stack([flat[:, m].sum(axis=1, dtype=np.int64) for m in masks], axis=1)
+        assert got.dtype == np.int64 and np.array_equal(got, want), (T, P)
+
+
+def test_count_variance_of_whole_counts_is_that_of_their_floats():
+    """heldout.count_variance takes its window counts as int32 (no float64 copy): the same bits as
+    the variance of the float64 counts, in each of its three branches."""
+    from spikegen.fidelity import heldout
+
+    rng = np.random.default_rng(9)
+    sim = (rng.random((1200, 6, 7)) < 0.3 * rng.random((1, 6, 7))).astype(np.uint8)
+    T = sim.shape[0]
+    mod = heldout.Modulation(1.0 + 0.2 * np.sin(np.arange(T) / 9.0), rng.random(42))
+    for w in (4, 16, 64, 400):
+        wv = min(w, max(T // 12, 1))
+        c = heldout.window_counts(sim, wv)
+        rate = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
+        want = {(True, None): c.var(axis=0, ddof=1), (False, None): np.diff(c, axis=0).var(axis=0, ddof=1) / 2.0,
+                (True, mod): ((c - wv * rate[None, :] * mod.window_factor(wv, 0, c.shape[0])) ** 2).sum(axis=0)
+                / (c.shape[0] - 1)}
+        for (static, m), v in want.items():
+            got = heldout.count_variance(sim, w, static, m)
+            assert np.array_equal(got, np.maximum(v * (w / wv), heldout.VAR_FLOOR)), (w, static, m is None)
+
+
+def test_sliding_local_median_is_the_median_of_each_window():
+    """stats._local_median (a sorted sliding window) against np.median of each frequency's window,
+    with ties and with windows that jump past each other."""
+    rng = np.random.default_rng(10)
+    for T in (50, 999, 4000):
+        freqs = (1 + np.arange(int(4 * T / 6))) / (4 * T)
+        for values in (rng.random(freqs.size) ** 3 * 1e4, np.round(rng.random(freqs.size) * 5)):
+            for rel, absolute in ((0.25, 10.0 / T), (0.01, 0.5 / T)):
+                want = [np.median(values[np.searchsorted(freqs, f - max(rel * f, absolute)):
+                                         np.searchsorted(freqs, f + max(rel * f, absolute))]) for f in freqs]
+                assert np.array_equal(stats._local_median(values, freqs, rel, absolute), want), (T, rel)
+
+
+def test_simulation_memo_gives_the_recomputed_diagnosis(monkeypatch):
+    """A model simulated twice is simulated once (bands.simulation_pass, ctx.passes): the same JSON
+    as a diagnosis that simulates every pass anew, with fewer simulations."""
+    import itertools
+
+    from spikegen.fidelity import bands
+
+    spikes, radiance, intensity, _ = synth.hidden_case(["gain_nonuniformity", "shot_noise"], seed=8, frames=600)
+    calls = []
+    simulate_rows = bands.simulate_rows
+    monkeypatch.setattr(bands, "simulate_rows", lambda *a, **k: calls.append(1) or simulate_rows(*a, **k))
+    memo = diagnose(spikes, radiance, intensity)
+    with_memo = len(calls)
+    fresh_keys = itertools.count()
+    monkeypatch.setattr(bands, "simulation_key", lambda sensor, shape: next(fresh_keys))
+    calls.clear()
+    fresh = diagnose(spikes, radiance, intensity)
+    assert memo.detected == fresh.detected and "shot_noise" in memo.detected
+    assert json.dumps(memo.as_json(), sort_keys=True) == json.dumps(fresh.as_json(), sort_keys=True)
+    assert with_memo <= len(calls) - 2, (with_memo, len(calls))  # the shot-noise model's and the kept model's
+
+
 def test_equivalent_interval_under_flicker():
     """The mean interval of a flickering rate, mapped back to the steady rate's interval."""
     from spikegen.fidelity.records import equivalent_isi, flicker_mean_isi, flicker_rate_table, interval_frames
@@ -582,11 +729,13 @@ def test_simulated_rows_are_those_rows_of_the_whole_simulation(effects):
     from spikegen.sensor import simulate
 
     rng = np.random.default_rng(1)
-    x = synth.test_radiance(20, 24, rng)
-    sensor = synth.make_sensor(effects, 20, 24, rng)
+    x = synth.test_radiance(40, 24, rng)
+    sensor = synth.make_sensor(effects, 40, 24, rng)
     whole = simulate(x, 96.0, sensor, frames=200, seed=5)
-    for r0, r1 in ((0, 8), (8, 16), (16, 20), (8, 20)):
-        np.testing.assert_array_equal(simulate(x, 96.0, sensor, frames=200, seed=5, rows=(r0, r1)), whole[:, r0:r1])
+    for r0, r1 in ((0, 8), (8, 16), (16, 40), (8, 40)):
+        for threads in (1, 2, 3):  # rows asked for are split over the threads (one chunk a thread)
+            np.testing.assert_array_equal(simulate(x, 96.0, sensor, frames=200, seed=5, rows=(r0, r1), threads=threads),
+                                          whole[:, r0:r1])
 
 
 def test_packed_reading_is_the_unpacked_stream(tmp_path):

@@ -350,7 +350,7 @@ def simulate(radiance, intensity: float, sensor: Sensor | None = None, frames: i
         raise InputError(f"rows must be (r0, r1) within 0..{H}, at multiples of {CHUNK_ROWS}, got {rows}")
     out = np.empty((frames, bottom - top, W), dtype=np.uint8)
     fast = sensor.kind == "if" and not sensor.radiance_effects and sensor.simple_readout
-    step = _rows_per_chunk(H, W, fast, max(1, int(threads)))
+    step = _rows_per_chunk(bottom - top, W, fast, max(1, int(threads)))  # the rows asked for: one chunk a thread
     run = _fast_rows if fast else _dense_rows
 
     def chunk(r0):

@@ -16,6 +16,8 @@ of 8 rows gives the same JSON, bit for bit, as one in a single band.
 """
 from __future__ import annotations
 
+import hashlib
+
 import numpy as np
 
 from ..sensor import CHUNK_ROWS, Sensor, simulate
@@ -84,71 +86,192 @@ def simulated_bands(ctx: Context, sensor: Sensor, rows: int):
     """``(r0, r1, rows r0:r1 of the simulation)`` for each band of ``rows`` rows: simulated a
     block of several bands at a time (up to SIM_BYTES), since the simulator steps through the
     frames in Python and a block of few pixels would spend its time there."""
+    for b0, b1, sim in simulated_blocks(ctx, sensor, rows):
+        for r0, r1 in bands(b1 - b0, rows):
+            yield b0 + r0, b0 + r1, sim[:, r0:r1]
+        del sim
+
+
+def simulated_blocks(ctx: Context, sensor: Sensor, rows: int):
+    """``(b0, b1, rows b0:b1 of the simulation)`` for each block of :func:`simulated_bands`."""
     T, (H, W) = ctx.frames, ctx.shape
     block = max(rows, (SIM_BYTES // max(T * W, 1)) // rows * rows)
     for b0 in range(0, H, block):
         b1 = min(H, b0 + block)
-        sim = simulate_rows(ctx, sensor, b0, b1)
-        for r0, r1 in bands(b1 - b0, rows):
-            yield b0 + r0, b0 + r1, sim[:, r0:r1]
-        del sim
+        yield b0, b1, simulate_rows(ctx, sensor, b0, b1)
+
+
+def simulation_key(sensor: Sensor, shape: tuple) -> str:
+    """A digest of what a simulation of the diagnosis' reference depends on besides the context
+    (radiance, intensity, frames and seed are the diagnosis' own): ``sensor``'s scalar parameters
+    and its maps at ``shape``. Two sensors with the same key give the same stream."""
+    R, d = sensor.maps(*shape)
+    digest = hashlib.sha256(repr(sorted(sensor.parameters().items())).encode())
+    for arr in (R, d):
+        digest.update(np.ascontiguousarray(arr, dtype=np.float64).tobytes())
+    return digest.hexdigest()
 
 
 def model_pass(ctx: Context, sensor: Sensor, measures: bool = False, checks: bool = False) -> dict:
     """The held-out score of ``sensor`` (``"score"``: heldout.HeldOutScore, as heldout.score of its
     whole simulation), with ``measures`` also ``"measures"`` (stats.discrepancies of its held-out
     frames) and with ``checks`` ``"unexplained"`` (unexplained.unexplained), in one pass over
-    bands of ``ctx.rows`` rows of its simulation."""
+    bands of ``ctx.rows`` rows of its simulation. What an earlier pass of the same simulation
+    (:func:`simulation_key`) computed is taken from ``ctx.passes`` instead of simulated again."""
+    return simulation_pass(ctx, sensor, measures=measures, checks=checks)
+
+
+def simulation_pass(ctx: Context, sensor: Sensor, score: bool = True, measures: bool = False, checks: bool = False,
+                    window: dict | None = None) -> dict:
+    """:func:`model_pass` (``"score"`` only with ``score``), and with ``window`` (``{"mask": [P]
+    or None, "timing": as fit_window_pass}``) also ``"window"``: what :func:`fit_window_pass`
+    returns of the simulation's fit window, from the same simulation. The score, measures and checks of each simulation are kept
+    in ``ctx.passes`` (by :func:`simulation_key`): a pass simulates only if something asked for
+    is not there, and computes only what is not there."""
+    key = simulation_key(sensor, ctx.shape)
+    done = ctx.passes.setdefault(key, {})
+    want = {"score": score, "measures": measures, "unexplained": checks}
+    todo = {k for k, v in want.items() if v and k not in done}
+    if todo or window is not None:
+        done.update(_simulate_and_reduce(ctx, sensor, "score" in todo, "measures" in todo,
+                                         "unexplained" in todo, window))
+    out = {k: done[k] for k, v in want.items() if v}
+    if window is not None:
+        out["window"] = done.pop("window")
+    return out
+
+
+def _simulate_and_reduce(ctx: Context, sensor: Sensor, score: bool, measures: bool, checks: bool,
+                         window: dict | None) -> dict:
+    """One simulation of ``sensor``, reduced band by band to what is asked for (see :func:`simulation_pass`)."""
     T, Tf, rows = ctx.frames, ctx.Tf, ctx.rows
-    Th = T - Tf
     H, W = ctx.shape
     P = H * W
     static_ref = ctx.X.shape[0] == 1
     mask = ctx.static
-    modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, T)
-    lengths = heldout.window_lengths(Th)
-    pooled = static_ref and modulation is None  # the count means need the population factor of all pixels
-    interval_ll = np.zeros(P)
-    count_ll = {w: np.zeros(P) for w in lengths}
-    rate, cvar = np.zeros(P), {w: np.zeros(P) for w in lengths}
-    pop = {w: 0.0 for w in lengths}
-    acc = _Accumulators(P, Th) if (measures or checks) else None
-    for r0, r1, sim in simulated_bands(ctx, sensor, rows):
-        sl = slice(r0 * W, r1 * W)
-        meas = ctx.spikes.rows(r0, r1, Tf)
-        band_mask = mask[sl]
-        if modulation is None:
-            interval_ll[sl] = heldout._interval_loglik(meas, stats.interval_moments(sim))
-            band_mod = None
-        else:
-            band_mod = heldout.Modulation(modulation.phi, modulation.share[sl])
-            interval_ll[sl] = heldout._clock_interval_loglik(meas, sim, band_mod)
-        if pooled:
-            rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
-        for w in lengths:
-            if pooled:
-                s = heldout.window_counts(sim[T - Th:], w)
-                pop[w] = pop[w] + s[:, band_mask].sum(axis=1)
-                cvar[w][sl] = heldout.count_variance(sim, w, True) * (1.0 + w / T)
-            else:
-                count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, static_ref, band_mod)
-        if acc is not None:
-            acc.add(sl, meas, sim, band_mask, static_ref, checks)
-    if pooled:  # heldout._count_loglik's static branch, with the factor of the whole population
-        for r0, r1 in bands(H, rows):
+    held = _HeldOutScore(ctx, sensor) if score else None
+    acc = _Accumulators(P, T - Tf) if (measures or checks) else None
+    fit = _FitWindow(ctx, window.get("mask"), timing=window.get("timing", "all")) if window is not None else None
+    for b0, b1, block in simulated_blocks(ctx, sensor, rows):
+        # the simulated intervals' moments of the whole block at once (a pass over its frames)
+        moments = (stats.interval_moments_by_frame(block)
+                   if held is not None and held.modulation is None else None)
+        for a0, a1 in bands(b1 - b0, rows):
+            r0, r1, sim = b0 + a0, b0 + a1, block[:, a0:a1]
             sl = slice(r0 * W, r1 * W)
-            for w in lengths:
-                c = heldout.window_counts(ctx.spikes.rows(r0, r1, Tf), w)
-                count_ll[w][sl] = heldout.count_loglik_given(c, pop[w], rate[sl], w, cvar[w][sl])
-    per_pixel = interval_ll
-    for w in lengths:
-        per_pixel = per_pixel + count_ll[w] / len(lengths)
-    out = {"score": heldout.finish_score(per_pixel, mask)}
+            if held is not None or acc is not None:
+                meas = ctx.spikes.rows(r0, r1, Tf)
+                band = _Band(meas, sim)  # what both reductions take of the band, made once
+                if moments is not None:
+                    band.put("moments", tuple(m[a0 * W: a1 * W] for m in moments))
+                if held is not None:
+                    held.add(sl, band)
+                if acc is not None:
+                    acc.add(sl, band, mask[sl], static_ref, checks)
+            if fit is not None:
+                fit.add(r0, r1, sim[:Tf])
+        del block
+    out = {}
+    if held is not None:
+        out["score"] = held.finish()
     if measures:
         out["measures"] = acc.measures(ctx.X.mean(axis=0), H, W)
     if checks:
         out["unexplained"] = acc.unexplained(mask, H, W)
+    if fit is not None:
+        out["window"] = fit.finish()
     return out
+
+
+class _Band:
+    """A band's measured held-out frames ``meas [Th, rows, W]`` and simulation ``sim [T, rows, W]``,
+    with what the held-out score and the accumulators both take of them (window counts, count
+    variances, spike times, interval moments), each computed on first use (or :meth:`put` from
+    its block) and then kept (the same arrays: none is changed in place by its users)."""
+
+    def __init__(self, meas: np.ndarray, sim: np.ndarray):
+        self.meas, self.sim = meas, sim
+        self.held = sim[sim.shape[0] - meas.shape[0]:]  # the simulation's held-out frames
+        self._memo = {}
+
+    def _get(self, key, make):
+        if key not in self._memo:
+            self._memo[key] = make()
+        return self._memo[key]
+
+    def put(self, key, value) -> None:
+        """Keep ``value`` as what ``key`` would compute (from a larger block: the same numbers)."""
+        self._memo[key] = value
+
+    def moments(self) -> tuple:
+        """stats.interval_moments of the whole simulation."""
+        return self._get("moments", lambda: stats.interval_moments(self.sim))
+
+    def windows(self, which: str, w: int) -> np.ndarray:
+        """heldout.window_counts of ``"meas"`` or ``"held"`` (the simulation's held-out frames)."""
+        return self._get(("windows", which, w), lambda: heldout.window_counts(getattr(self, which), w))
+
+    def count_variance(self, w: int, static_reference: bool) -> np.ndarray:
+        """heldout.count_variance of the whole simulation (no modulation)."""
+        return self._get(("cvar", w, static_reference), lambda: heldout.count_variance(self.sim, w, static_reference))
+
+    def times(self, which: str) -> tuple:
+        """stats.spike_times of ``"meas"`` or ``"held"``."""
+        return self._get(("times", which), lambda: stats.spike_times(getattr(self, which)))
+
+
+class _HeldOutScore:
+    """heldout.score of a model's whole simulation, band by band (:func:`simulation_pass`)."""
+
+    def __init__(self, ctx: Context, sensor: Sensor):
+        T, Tf = ctx.frames, ctx.Tf
+        P = ctx.shape[0] * ctx.shape[1]
+        self.ctx = ctx
+        self.static_ref = ctx.X.shape[0] == 1
+        self.modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, T)
+        self.lengths = heldout.window_lengths(T - Tf)
+        # the count means need the population factor of all pixels
+        self.pooled = self.static_ref and self.modulation is None
+        self.interval_ll = np.zeros(P)
+        self.count_ll = {w: np.zeros(P) for w in self.lengths}
+        self.rate, self.cvar = np.zeros(P), {w: np.zeros(P) for w in self.lengths}
+        self.pop = {w: 0.0 for w in self.lengths}
+
+    def add(self, sl: slice, band: _Band) -> None:
+        """The pixels ``sl``: the band's measured held-out frames and simulation."""
+        meas, sim = band.meas, band.sim
+        T, Th = sim.shape[0], meas.shape[0]
+        band_mask = self.ctx.static[sl]
+        if self.modulation is None:
+            self.interval_ll[sl] = heldout._interval_loglik(meas, band.moments(),
+                                                            stats.intervals(meas, times=band.times("meas")))
+            band_mod = None
+        else:
+            band_mod = heldout.Modulation(self.modulation.phi, self.modulation.share[sl])
+            self.interval_ll[sl] = heldout._clock_interval_loglik(meas, sim, band_mod)
+        if self.pooled:
+            self.rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
+        for w in self.lengths:
+            if self.pooled:
+                s = band.windows("held", w)
+                self.pop[w] = self.pop[w] + s[:, band_mask].sum(axis=1)
+                self.cvar[w][sl] = band.count_variance(w, True) * (1.0 + w / T)
+            else:
+                self.count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, self.static_ref, band_mod)
+
+    def finish(self) -> heldout.HeldOutScore:
+        ctx, lengths = self.ctx, self.lengths
+        W = ctx.shape[1]
+        if self.pooled:  # heldout._count_loglik's static branch, with the factor of the whole population
+            for r0, r1 in bands(ctx.shape[0], ctx.rows):
+                sl = slice(r0 * W, r1 * W)
+                for w in lengths:
+                    c = heldout.window_counts(ctx.spikes.rows(r0, r1, ctx.Tf), w)
+                    self.count_ll[w][sl] = heldout.count_loglik_given(c, self.pop[w], self.rate[sl], w, self.cvar[w][sl])
+        per_pixel = self.interval_ll
+        for w in lengths:
+            per_pixel = per_pixel + self.count_ll[w] / len(lengths)
+        return heldout.finish_score(per_pixel, ctx.static)
 
 
 class _Accumulators:
@@ -168,10 +291,11 @@ class _Accumulators:
             self.fields[name] = np.zeros(self.P, dtype=np.asarray(values).dtype)
         self.fields[name][sl] = values
 
-    def add(self, sl, meas, sim_full, mask, static_ref, checks):
-        Th, T = self.Th, sim_full.shape[0]
-        sim = sim_full[T - Th:]
-        pm, ps = stats.pixel_stats(meas), stats.pixel_stats(sim)
+    def add(self, sl, band: _Band, mask, static_ref, checks):
+        meas, sim_full, sim = band.meas, band.sim, band.held
+        Th = self.Th
+        pm = stats.pixel_stats(meas, times=band.times("meas"))
+        ps = stats.pixel_stats(sim, times=band.times("held"))
         hm, hs = stats.isi_histogram(pm.isi_values, Th), stats.isi_histogram(ps.isi_values, Th)
         self.hist["m"] += hm
         self.hist["s"] += hs
@@ -189,22 +313,23 @@ class _Accumulators:
         self._put("c", sl, c)
         self._put("s", sl, s)
         self._put("var", sl, 2.0 * heldout.count_variance(sim_full, Th, static_ref))
-        self._put("var4", sl, heldout.count_variance(sim_full, 4, True))
-        w4 = [heldout.window_counts(x, 4)[:, mask] for x in (meas, sim)]
+        self._put("var4", sl, band.count_variance(4, True))
+        w4 = [band.windows(x, 4)[:, mask] for x in ("meas", "held")]
         self.frame["c"] = self.frame["c"] + w4[0].sum(axis=1)
         self.frame["s"] = self.frame["s"] + w4[1].sum(axis=1)
         self.frame["n"] = w4[0].shape[0]
-        c16, s16 = (heldout.window_counts(x, 16)[:, mask] for x in (meas, sim))
+        c16, s16 = (band.windows(x, 16)[:, mask] for x in ("meas", "held"))
         self.frame["n16"] = c16.shape[0]
         if c16.shape[0] >= 4:
             self.lists["disp_d"].append(c16.var(axis=0, ddof=1) - s16.var(axis=0, ddof=1))
             self.lists["disp_s"].append(s16.var(axis=0, ddof=1))
-        for key, x, p in (("rm", meas, pm), ("rs", sim, ps)):
-            r = stats.serial_correlation(x)[mask & (p.isi_var >= 2.0) & (p.n_isi >= 8)]
+        for key, x, p in (("rm", "meas", pm), ("rs", "held", ps)):
+            r = stats.serial_correlation(getattr(band, x), times=band.times(x))[mask & (p.isi_var >= 2.0) & (p.n_isi >= 8)]
             self.lists[key].append(r)
         keep = np.flatnonzero(mask)
-        for key, x, p in (("m_mask", meas, pm), ("s_mask", sim, ps)):
-            self.hist[key] += stats.isi_histogram(p.isi_values[np.isin(stats.interval_pixels(x), keep)], Th)
+        for key, x, p in (("m_mask", "meas", pm), ("s_mask", "held", ps)):
+            pixels = stats.interval_pixels(getattr(band, x), times=band.times(x))
+            self.hist[key] += stats.isi_histogram(p.isi_values[np.isin(pixels, keep)], Th)
 
     def _stats(self, k):
         f = self.fields
@@ -228,10 +353,23 @@ class _Accumulators:
 def pixel_stats(stream: Stream, rows: int, t0: int = 0, t1: int | None = None, clock=None) -> stats.PixelStats:
     """stats.pixel_stats of frames ``t0:t1`` of ``stream``, band by band (the same numbers), but
     without the pooled intervals (``isi_values`` is None: they are as many as the spikes)."""
-    parts = [stats.pixel_stats(stream.rows(r0, r1, t0, t1), clock) for r0, r1 in bands(stream.shape[1], rows)]
-    for p in parts:
-        p.isi_values = None
-    return join_stats(parts)
+    return join_stats([stats.pixel_stats(stream.rows(r0, r1, t0, t1), clock, values=False)
+                       for r0, r1 in bands(stream.shape[1], rows)])
+
+
+def fit_window_stats(stream: Stream, rows: int, Tf: int) -> tuple[stats.PixelStats, tuple]:
+    """``(pixel_stats(stream, rows, 0, Tf), (window_rate of frames 0:Tf // 2, of Tf // 2:Tf))``,
+    the same numbers, in one read of the fit window (the rates of the halves from its spike
+    indices, stats.split_window_rates)."""
+    parts, first, second = [], [], []
+    for r0, r1 in bands(stream.shape[1], rows):
+        band = stream.rows(r0, r1, 0, Tf)
+        idx, starts, T = stats.pixel_major_spikes(band)
+        parts.append(stats.frame_stats(idx, starts, T, extremes=True, values=False))
+        a, b = stats.split_window_rates(idx, starts, T, Tf // 2)
+        first.append(a)
+        second.append(b)
+    return join_stats(parts), (np.concatenate(first), np.concatenate(second))
 
 
 def join_stats(parts: list) -> stats.PixelStats:
@@ -254,13 +392,39 @@ def window_rate(stream: Stream, rows: int, t0: int, t1: int) -> np.ndarray:
 def population_signal(stream: Stream, mask: np.ndarray, rows: int, t0: int = 0, t1: int | None = None) -> np.ndarray:
     """stats.population_signal of frames ``t0:t1`` of ``stream`` over ``mask [P]``: whole numbers
     summed band by band (the same numbers)."""
+    return population_signals(stream, [mask], rows, t0, t1)[0]
+
+
+def population_signals(stream: Stream, masks: list, rows: int, t0: int = 0, t1: int | None = None) -> list:
+    """:func:`population_signal` of each mask of ``masks`` (``[P]`` each), in one read of the stream."""
     W = stream.shape[2]
-    mask = np.asarray(mask).reshape(-1)
+    masks = [np.asarray(m).reshape(-1) for m in masks]
     total = 0
     for r0, r1 in bands(stream.shape[1], rows):
         band = stream.rows(r0, r1, t0, t1)
-        total = total + band.reshape(band.shape[0], -1)[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
-    return np.asarray(total).astype(np.float64)
+        total = total + masked_frame_sums(band.reshape(band.shape[0], -1), [m[r0 * W: r1 * W] for m in masks])
+    return [total[:, i].astype(np.float64) for i in range(len(masks))]
+
+
+MATMUL_FRAMES = 2048  # frames converted to float32 at a time by masked_frame_sums
+
+
+def masked_frame_sums(flat: np.ndarray, masks: list) -> np.ndarray:
+    """``int64 [T, len(masks)]``: the spikes of each frame of ``flat [T, P]`` (0/1) summed over the
+    pixels of each mask ``[P]``. A matrix product with the masks in float32, a block of frames at a
+    time: every partial sum is a whole number below 2**24 (at most ``P`` ones), so exact in any
+    order (BLAS threads included) and the same as summing the masked pixels one by one."""
+    T, P = flat.shape
+    if P >= 1 << 24:
+        return np.stack([flat[:, m].sum(axis=1, dtype=np.int64) for m in masks], axis=1)
+    onehot = np.stack(masks, axis=1).astype(np.float32)
+    out = np.empty((T, len(masks)), dtype=np.float32)
+    buf = np.empty((min(T, MATMUL_FRAMES), P), dtype=np.float32)
+    for f0 in range(0, T, MATMUL_FRAMES):
+        f1 = min(T, f0 + MATMUL_FRAMES)
+        np.copyto(buf[: f1 - f0], flat[f0:f1])
+        np.matmul(buf[: f1 - f0], onehot, out=out[f0:f1])
+    return out.astype(np.int64)
 
 
 def quadrant_counts(stream: Stream, mask: np.ndarray, rows: int, t1: int) -> np.ndarray:
@@ -270,13 +434,19 @@ def quadrant_counts(stream: Stream, mask: np.ndarray, rows: int, t1: int) -> np.
 
 
 def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | None = None,
-                    clock_mask: np.ndarray | None = None) -> dict:
+                    clock_mask: np.ndarray | None = None, score: bool = False, timing: str | None = "all") -> dict:
     """Of ``sensor``'s simulation's fit window (its first ``Tf`` frames), band by band:
-    ``"stats"`` (stats.pixel_stats, without ``isi_values``), with ``mask [P]`` also ``"quadrants"``
-    (stats.quadrant_counts) and ``"signal"`` (stats.population_signal over ``mask``), with
-    ``clock_mask`` the stats measured on the population clock of those pixels instead (two passes)."""
+    ``"stats"`` (stats.pixel_stats, without ``isi_values``; with ``timing="variances"`` only the
+    fields of stats.interval_variances, cheaper; with None no ``"stats"``), with ``mask [P]`` also
+    ``"quadrants"`` (stats.quadrant_counts) and ``"signal"`` (stats.population_signal over
+    ``mask``), with ``clock_mask`` all the stats measured on the population clock of those pixels
+    instead (two passes). With ``score`` (``rows`` those of the context, no ``clock_mask``) the same
+    simulation's held-out score is computed too and kept for :func:`model_pass`, which then need
+    not simulate the sensor again (:func:`simulation_pass`)."""
     H, W = ctx.shape
     Tf = ctx.Tf
+    if clock_mask is None and rows == ctx.rows:
+        return simulation_pass(ctx, sensor, score=score, window={"mask": mask, "timing": timing})["window"]
     clock = None
     if clock_mask is not None:
         signal = 0
@@ -284,19 +454,39 @@ def fit_window_pass(ctx: Context, sensor: Sensor, rows: int, mask: np.ndarray | 
             band = band[:Tf]
             signal = signal + band.reshape(Tf, -1)[:, clock_mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
         clock = stats.clock_of(np.asarray(signal).astype(np.float64))
-    parts, quads, signal = [], 0, 0
+    fit = _FitWindow(ctx, mask, clock)
     for r0, r1, band in simulated_bands(ctx, sensor, rows):
-        band = band[:Tf]
-        p = stats.pixel_stats(band, clock)
-        p.isi_values = None
-        parts.append(p)
-        if mask is not None:
-            quads = quads + stats.quadrant_counts(band, mask, top=r0, height=H)
-            signal = signal + band.reshape(Tf, -1)[:, mask[r0 * W: r1 * W]].sum(axis=1, dtype=np.int64)
-    out = {"stats": join_stats(parts)}
-    if mask is not None:
-        out["quadrants"], out["signal"] = quads, np.asarray(signal).astype(np.float64)
-    return out
+        fit.add(r0, r1, band[:Tf])
+    return fit.finish()
+
+
+class _FitWindow:
+    """What :func:`fit_window_pass` returns, band by band."""
+
+    def __init__(self, ctx: Context, mask: np.ndarray | None, clock: np.ndarray | None = None,
+                 timing: str | None = "all"):
+        if timing not in ("all", "variances", None) or (clock is not None and timing != "all"):
+            raise ValueError(f"timing must be 'all', 'variances' or None (with a clock 'all'), got {timing!r}")
+        self.shape, self.mask, self.clock, self.timing = ctx.shape, mask, clock, timing
+        self.parts, self.quads, self.signal = [], 0, 0
+
+    def add(self, r0: int, r1: int, band: np.ndarray) -> None:
+        """Rows ``r0:r1`` of the fit window, ``band [Tf, r1 - r0, W]``."""
+        H, W = self.shape
+        if self.timing == "all":
+            self.parts.append(stats.pixel_stats(band, self.clock, values=False))
+        elif self.timing == "variances":
+            self.parts.append(stats.interval_variances(band))
+        if self.mask is not None:
+            self.quads = self.quads + stats.quadrant_counts(band, self.mask, top=r0, height=H)
+            self.signal = self.signal + masked_frame_sums(band.reshape(band.shape[0], -1),
+                                                          [self.mask[r0 * W: r1 * W]])[:, 0]
+
+    def finish(self) -> dict:
+        out = {"stats": join_stats(self.parts)} if self.timing is not None else {}
+        if self.mask is not None:
+            out["quadrants"], out["signal"] = self.quads, np.asarray(self.signal).astype(np.float64)
+        return out
 
 
 def motion_test(stream: Stream, rows: int) -> tuple[np.ndarray, np.ndarray]:

@@ -164,22 +164,28 @@ def _choose(ctx: Context, fit: Fit) -> tuple[list, Sensor, dict]:
     the verdicts (dropped effects undetected, with a note), the extended sensor, and
     ``{"doc": the JSON "heldout" entry, "unexplained": entries, "measures": (the baseline's
     discrepancy measures, the extended sensor's)}``. Each model's simulation is made and
-    scored in bands of rows (bands.model_pass)."""
+    scored in bands of rows (bands.model_pass), once: a model simulated before (the shot noise
+    verdict's noise-free model, the kept model) is taken from ``ctx.passes``."""
     found, electrons = gated_effects(ctx, fit)
+    gated = [n for n in EFFECTS if found[n].detected]
     cache = {}
 
     def evaluate(on):
         key = frozenset(on)
         if key not in cache:
-            cache[key] = bands.model_pass(ctx, sensor_with(ctx, fit, found, set(on), electrons))["score"]
+            # the model of every gated effect is the likeliest to be kept: its discrepancy measures
+            # and checks come from the same simulation, kept (ctx.passes) for the extended sensor's pass
+            full = key == frozenset(gated)
+            cache[key] = bands.model_pass(ctx, sensor_with(ctx, fit, found, set(on), electrons),
+                                          measures=full, checks=full)["score"]
         return cache[key]
 
-    gated = [n for n in EFFECTS if found[n].detected]
     kept, evidence = heldout.select(gated, evaluate, {n: heldout.penalty(n, found[n].parameters) for n in gated})
     effects = [_with_evidence(found[n], n in kept, evidence.get(n)) for n in EFFECTS]
     extended = sensor_with(ctx, fit, found, set(kept), electrons)
     ideal_pass = bands.model_pass(ctx, ctx.baseline, measures=True)
-    fitted_pass = bands.model_pass(ctx, extended, measures=True, checks=True)  # the kept model's again
+    # the kept model's again: its score, and with every gated effect kept all of it, from ctx.passes
+    fitted_pass = bands.model_pass(ctx, extended, measures=True, checks=True)
     ideal, fitted = ideal_pass["score"], fitted_pass["score"]
     doc = {"measure": heldout.MEASURE, "ideal": as_number(ideal.mean), "fitted": as_number(fitted.mean),
            "higher_is_better": True, "window_frames": heldout.window_lengths(ctx.frames - ctx.Tf),
@@ -220,9 +226,7 @@ def _context(spikes: bands.Stream, radiance, intensity: float, baseline: Sensor,
     """Timing statistics of the first ``Tf`` frames (read in bands of ``rows`` rows) and the
     reference radiance ``[K, H, W]``."""
     T, H, W = spikes.shape
-    meas = bands.pixel_stats(spikes, rows, 0, Tf)
-    half = Tf // 2
-    halves = (bands.window_rate(spikes, rows, 0, half), bands.window_rate(spikes, rows, half, Tf))
+    meas, halves = bands.fit_window_stats(spikes, rows, Tf)  # halves: the rates of its two halves
     self_ref = isinstance(radiance, str)
     motion = drift.image_motion(spikes, rows, Tf) if self_ref else None
     if self_ref and motion.significant:

@@ -313,7 +313,7 @@ def _check_flicker_against_model(ctx: Context, fit: Fit, found: dict) -> Effect:
     fl = fit.flicker
     others = {k: v for k, v in found.items() if k != "flicker"}
     sensor = build_sensor(ctx, fit, others, electrons=0.0)
-    signal = bands.fit_window_pass(ctx, sensor, ctx.rows, mask=fl.mask)["signal"]
+    signal = bands.fit_window_pass(ctx, sensor, ctx.rows, mask=fl.mask, timing=None)["signal"]
     own = abs(stats.sine_at(signal, fl.light, 1.0 / fl.period_frames))
     eff = found["flicker"]
     eff = replace(eff, parameters={**eff.parameters, "model_depth_at_period": own})
@@ -343,7 +343,9 @@ def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
     by its pixels beyond the model's (:func:`_common_mode`), both streams' intervals are measured
     on their own population's clock (stats.population_clock), which removes it, first."""
     mask = _common_mask(ctx, fit)
-    sim = bands.fit_window_pass(ctx, deterministic, ctx.rows, mask=mask)
+    # `deterministic` is the model of the gated effects but shot noise, which the held-out choice
+    # always scores (diagnose._choose): its score comes from this simulation too (ctx.passes)
+    sim = bands.fit_window_pass(ctx, deterministic, ctx.rows, mask=mask, score=True, timing="variances")
     common = _common_mode(ctx, mask, sim["quadrants"])
     meas, ps = ctx.meas, sim["stats"]
     if common["removed"]:

@@ -6,6 +6,14 @@ of 4096 rows and ``b @ b`` of 20000 entries differed in their last bits. One suc
 fit moved the fitted flicker depth, hence the diagnosis' own simulations, hence verdicts. The
 functions here sum over pixels and frames with NumPy's own reductions (one thread, an order fixed
 by the shapes alone); LAPACK sees only the small systems they produce (at most 4 unknowns).
+
+NumPy sums an axis that is not the last (``X.sum(axis=0)`` of ``[n, k]``, ``k >= 2``) one row
+after another, and the short last axis of :func:`matvec` (``p <= 7``) one column after another.
+:func:`gram` sums each product of two columns once (not the ``p x p`` of them) in one such
+reduction, :func:`normal_equations` the products of :func:`gram` and :func:`rmatvec` together,
+from the columns, without stacking the matrix; :func:`matvec` adds the columns in order: the
+same additions in the same order as the plain reductions, so the same bits
+(tests/test_diagnose.py compares them).
 """
 from __future__ import annotations
 
@@ -19,7 +27,13 @@ def dot(a: np.ndarray, b: np.ndarray) -> float:
 
 def matvec(A: np.ndarray, x) -> np.ndarray:
     """``A @ x`` for ``A [n, p]``, ``x [p]``: ``[n]``."""
-    return (np.asarray(A, dtype=np.float64) * np.asarray(x, dtype=np.float64)[None, :]).sum(axis=1)
+    A, x = np.asarray(A, dtype=np.float64), np.asarray(x, dtype=np.float64)
+    if not 1 <= A.shape[1] <= 7:  # NumPy sums 8 or more pairwise
+        return (A * x[None, :]).sum(axis=1)
+    out = A[:, 0] * x[0]
+    for j in range(1, A.shape[1]):
+        out += A[:, j] * x[j]
+    return out
 
 
 def rmatvec(A: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -30,7 +44,42 @@ def rmatvec(A: np.ndarray, b: np.ndarray) -> np.ndarray:
 def gram(A: np.ndarray) -> np.ndarray:
     """``A.T @ A`` for ``A [n, p]``: ``[p, p]``."""
     A = np.asarray(A, dtype=np.float64)
-    return (A[:, :, None] * A[:, None, :]).sum(axis=0)
+    if A.shape[1] < 2:  # a single column is summed pairwise
+        return (A[:, :, None] * A[:, None, :]).sum(axis=0)
+    return _pair_sums([A[:, j] for j in range(A.shape[1])], A.shape[0])[0]
+
+
+def normal_equations(cols: list, b: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(gram(A), rmatvec(A, b))`` of the matrix ``A`` whose columns are ``cols`` (``[n]`` each,
+    at least two), the same bits, without stacking ``A``."""
+    return _pair_sums(cols, len(b), b)
+
+
+def _pair_sums(cols: list, n: int, b: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(gram of the columns, their products with b summed)``: every product of two columns (each
+    pair once) and of each column with ``b`` in one ``[n, k]`` array, summed over its rows by one
+    reduction (NumPy adds row after row, as :func:`gram` and :func:`rmatvec` do)."""
+    p = len(cols)
+    pairs = [(i, j) for i in range(p) for j in range(i, p)]
+    prod = np.empty((n, len(pairs) + (p if b is not None else 0)))
+    for k, (i, j) in enumerate(pairs):
+        np.multiply(cols[i], cols[j], out=prod[:, k])
+    if b is not None:
+        for k, col in enumerate(cols):
+            np.multiply(col, b, out=prod[:, len(pairs) + k])
+    sums = prod.sum(axis=0)
+    M = np.empty((p, p))
+    for k, (i, j) in enumerate(pairs):
+        M[i, j] = M[j, i] = sums[k]
+    return M, sums[len(pairs):]
+
+
+def matvec_columns(cols: list, x) -> np.ndarray:
+    """:func:`matvec` of the matrix whose columns are ``cols`` (one to seven), the same bits."""
+    out = cols[0] * x[0]
+    for j in range(1, len(cols)):
+        out += cols[j] * x[j]
+    return out
 
 
 def lstsq(A: np.ndarray, b: np.ndarray) -> np.ndarray:

@@ -124,9 +124,14 @@ def window_lengths(held_frames: int) -> list:
 
 def window_counts(spikes: np.ndarray, w: int) -> np.ndarray:
     """``[n, P]`` spikes of each pixel in consecutive windows of ``w`` frames of ``spikes [T, H, W]``."""
+    return _window_counts(spikes, w).astype(np.float64)
+
+
+def _window_counts(spikes: np.ndarray, w: int) -> np.ndarray:
+    """:func:`window_counts` as ``int32`` (NumPy's ``var`` of whole numbers in ``int32`` takes the same
+    float64 steps as of them in float64, without the copy)."""
     n = spikes.shape[0] // w
-    flat = spikes[: n * w].reshape(n, w, -1)
-    return flat.sum(axis=1, dtype=np.int32).astype(np.float64)
+    return spikes[: n * w].reshape(n, w, -1).sum(axis=1, dtype=np.int32)
 
 
 def count_variance(simulated: np.ndarray, w: int, static_reference: bool,
@@ -139,7 +144,7 @@ def count_variance(simulated: np.ndarray, w: int, static_reference: bool,
     variance grows with the window)."""
     T = simulated.shape[0]
     wv = min(w, max(T // 12, 1))
-    s = window_counts(simulated, wv)
+    s = _window_counts(simulated, wv)
     if static_reference and modulation is not None:
         rate = simulated.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
         v = ((s - wv * rate[None, :] * modulation.window_factor(wv, 0, s.shape[0])) ** 2).sum(axis=0) / (s.shape[0] - 1)

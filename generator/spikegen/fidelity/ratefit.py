@@ -48,42 +48,46 @@ def _bases(ctx: Context, gamma: float):
     return xg.mean(0).reshape(-1), (neighbour_mean(xg) - xg).mean(0).reshape(-1)
 
 
-def _design(ctx: Context, fbar: float, gamma: float, use_c: bool) -> np.ndarray:
-    """``[P, 2 or 3]``: the model's rate is linear in ``(a, [a c,] a d)`` for fixed gamma."""
+def _design(ctx: Context, fbar: float, gamma: float, use_c: bool) -> list:
+    """The columns (``[P]`` each, 2 or 3) of the design: the model's rate is linear in
+    ``(a, [a c,] a d)`` for fixed gamma."""
     B0, B1 = _bases(ctx, gamma)
     Rb, db = ctx.Rb, ctx.db
     gf = ctx.g * fbar
     cols = [Rb * (gf * B0 + db), Rb]
     if use_c:
         cols.insert(1, Rb * gf * B1)
-    return np.stack(cols, axis=1)
+    return cols
 
 
 def _solve(A, isi, delta, sqrt_w, keep, want_cov=False, target=None):
     """Weighted LSQ of ``lambda_obs = 1 / (ISI - delta)`` (or of ``target``) on the design
-    ``A [P, p]``, relative errors weighted by ``w``; returns (theta, cov or None, lam_pred [P])."""
+    ``A`` (its columns, :func:`_design`), relative errors weighted by ``w``; returns (theta,
+    cov or None, lam_pred [P]). Sums by exact (one order, whatever the BLAS threads), column by
+    column: the same bits as on the stacked ``[P, p]`` matrix."""
     if target is None:
         x = isi - delta
         ok = keep & (x >= 1.05)
     else:
         x = 1.0 / np.maximum(target, 1e-12)
         ok = keep & (target < 0.95)
-    if ok.sum() < A.shape[1] + 5:
+    n_ok = int(ok.sum())
+    if n_ok < len(A) + 5:
         return None
-    sw = sqrt_w[ok] * x[ok]  # sqrt(w) / lambda_obs
-    Aw = A[ok] * sw[:, None]
     bw = sqrt_w[ok]  # lambda_obs * sw
-    M = exact.gram(Aw)
+    sw = bw * x[ok]  # sqrt(w) / lambda_obs
+    Aw = [col[ok] * sw for col in A]
+    M, v = exact.normal_equations(Aw, bw)
     try:
-        theta = np.linalg.solve(M, exact.rmatvec(Aw, bw))
+        theta = np.linalg.solve(M, v)
     except np.linalg.LinAlgError:
         return None
     cov = None
     if want_cov:
-        res = bw - exact.matvec(Aw, theta)
-        s2 = exact.dot(res, res) / max(ok.sum() - A.shape[1], 1)
+        res = bw - exact.matvec_columns(Aw, theta)
+        s2 = exact.dot(res, res) / max(n_ok - len(A), 1)
         cov = np.linalg.inv(M) * s2
-    return theta, cov, exact.matvec(A, theta)
+    return theta, cov, exact.matvec_columns(A, theta)
 
 
 def _solve_censored(A, isi, delta, sqrt_w, keep, want_cov=False):
@@ -103,12 +107,6 @@ def _solve_censored(A, isi, delta, sqrt_w, keep, want_cov=False):
     rel = (inv[keep] - proj[keep]) / isi[keep]
     w = sqrt_w[keep] ** 2
     return sol, float(np.sum(w * rel * rel) / np.sum(w))
-
-
-def _objective(isi, predicted, w, keep):
-    """Weighted mean squared relative error of the predicted mean intervals."""
-    rel = (isi[keep] - predicted[keep]) / isi[keep]
-    return float(np.sum(w[keep] * rel * rel) / np.sum(w[keep]))
 
 
 def _gamma_se(f, gamma, obj, n):
@@ -132,7 +130,7 @@ class _RateProblem:
     w: np.ndarray  # [P] weights: intervals counted, at most 200
     sqrt_w: np.ndarray  # [P]
     phi: tuple | None  # flicker factors over fbar: (fit window, first half, second half); None: no flicker
-    tables: dict  # delta -> flicker_rate_table of the fit window
+    tables: dict  # delta -> flicker_rate_table of the fit window; ("kept", id) -> :meth:`kept`
 
     @classmethod
     def build(cls, ctx: Context, flicker: FlickerFit | None, fbar: float) -> "_RateProblem":
@@ -184,7 +182,19 @@ class _RateProblem:
         sol = _solve(A, isi, delta, self.sqrt_w, keep, want_cov)
         if sol is None:
             return math.inf, None
-        return _objective(self.isi, self.predicted(sol[2], delta), self.w, keep), sol
+        # the objective: weighted mean squared relative error of the predicted mean intervals
+        isi_k, w_k, w_sum = self.kept(keep)
+        rel = (isi_k - self.predicted(sol[2][keep], delta)) / isi_k
+        return float(np.sum(w_k * rel * rel) / w_sum), sol
+
+    def kept(self, keep) -> tuple:
+        """``(isi[keep], w[keep], sum of w[keep])``, kept for the array ``keep`` (the fits of a
+        round share one; it is never changed in place)."""
+        hit = self.tables.get(("kept", id(keep)))
+        if hit is None or hit[0] is not keep:
+            w_k = self.w[keep]
+            hit = self.tables[("kept", id(keep))] = (keep, self.isi[keep], w_k, np.sum(w_k))
+        return hit[1:]
 
     def best_gamma(self, delta, keep, iters=22) -> float:
         g = stats.golden_min(lambda gm: self.fit_at(delta, math.exp(gm), keep)[0], *np.log(GAMMA_RANGE), iters=iters)
@@ -266,9 +276,12 @@ def fit_flicker(ctx: Context, rate: RateFit | None) -> FlickerFit | None:
         return None
     light_of = _light_of(ctx, weight)
     light = light_of(mask)
-    sine = stats.fit_sine(bands.population_signal(ctx.spikes, mask, ctx.rows, 0, ctx.Tf), light,
-                          min_period=6.0, max_period=2.0 * ctx.frames)
-    coherence = _coherence(ctx, lam, mask, light_of, sine.period_frames)
+    groups = _brightness_quartiles(lam, mask)
+    # one read of the fit window for the four groups; their sum is the signal of the whole mask
+    # (whole numbers: the same as reading it alone)
+    group_signals = bands.population_signals(ctx.spikes, groups, ctx.rows, 0, ctx.Tf)
+    sine = stats.fit_sine(sum(group_signals), light, min_period=6.0, max_period=2.0 * ctx.frames)
+    coherence = _coherence(groups, group_signals, light_of, sine.period_frames)
     return FlickerFit(sine.period_frames, sine.depth, sine.phase, sine.z, coherence, mask, light)
 
 
@@ -294,14 +307,16 @@ def _light_of(ctx: Context, weight: np.ndarray):
     return lambda m: exact.matvec(wts, (xk[:, m] * scale[m]).sum(axis=1))
 
 
-def _coherence(ctx: Context, lam, mask, light_of, period_frames) -> float:
-    """Flicker modulates the light of every pixel in phase and by the same depth; the beat of
-    regular pixel trains depends on their rate. Agreement of four brightness quartiles."""
+def _brightness_quartiles(lam, mask) -> list:
+    """The pixels of ``mask [P]`` in four groups ``[P]`` by the quartiles of ``lam`` over ``mask``."""
     edges = np.quantile(lam[mask], [0.25, 0.5, 0.75])
     groups = np.searchsorted(edges, lam)
-    vecs = []
-    for gi in range(4):
-        m = mask & (groups == gi)
-        signal = bands.population_signal(ctx.spikes, m, ctx.rows, 0, ctx.Tf)
-        vecs.append(stats.sine_at(signal, light_of(m), 1.0 / period_frames))
+    return [mask & (groups == gi) for gi in range(4)]
+
+
+def _coherence(groups, signals, light_of, period_frames) -> float:
+    """Flicker modulates the light of every pixel in phase and by the same depth; the beat of
+    regular pixel trains depends on their rate. Agreement of four brightness quartiles (``groups``,
+    :func:`_brightness_quartiles`, with their population ``signals``)."""
+    vecs = [stats.sine_at(signal, light_of(m), 1.0 / period_frames) for m, signal in zip(groups, signals)]
     return float(abs(sum(vecs)) / max(sum(abs(v) for v in vecs), 1e-12))

@@ -115,6 +115,9 @@ class Context:
     untested: int = 0  # pixels with too few spikes to be tested for a change of rate ('self' only)
     rows: int = 8  # rows of the bands the streams are read and simulated in (bands.band_rows)
     motion: object = None  # drift.ImageMotion of the whole image ('self' only)
+    # what the passes over each model's simulation computed (bands.simulation_pass), by
+    # bands.simulation_key: a memo, so that a sensor simulated twice is simulated once
+    passes: dict = field(default_factory=dict, repr=False)
 
     @property
     def shape(self) -> tuple:

@@ -7,6 +7,7 @@ compare a measured stream with a simulated one and are what ``spikegen diagnose`
 """
 from __future__ import annotations
 
+import bisect
 import math
 from dataclasses import dataclass
 
@@ -51,14 +52,24 @@ class PixelStats:
 
 def spike_times(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(pixel, frame)`` of every spike, sorted by pixel then frame (``int64 [N]`` each)."""
+    idx, starts, T = pixel_major_spikes(spikes)
+    pix = np.repeat(np.arange(starts.size - 1, dtype=np.int64), np.diff(starts))
+    return pix, idx - pix * T
+
+
+def pixel_major_spikes(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, int]:
+    """``(idx [N], starts [P + 1], T)``: ``idx = pixel * T + frame`` of every spike, sorted (pixel
+    major), and where each pixel's spikes start in it (pixel ``p``: ``idx[starts[p]:starts[p + 1]]``)."""
     T = spikes.shape[0]
     frames = spikes.reshape(T, -1)
+    P = frames.shape[1]
     flat = np.empty(frames.shape[::-1], dtype=frames.dtype)  # [P, T]
     for t0 in range(0, T, TRANSPOSE_FRAMES):  # in blocks of frames: a byte array's plain transpose is 4x slower
         flat[:, t0: t0 + TRANSPOSE_FRAMES] = frames[t0: t0 + TRANSPOSE_FRAMES].T
     idx = np.flatnonzero(flat).astype(np.int64, copy=False)
-    pix = idx // max(T, 1)
-    return pix, idx - pix * T
+    # the pixels' boundaries by bisection (P searches), not a division of every index by T
+    starts = np.searchsorted(idx, np.arange(P + 1, dtype=np.int64) * T)
+    return idx, starts, T
 
 
 TRANSPOSE_FRAMES = 256
@@ -70,6 +81,11 @@ def grouped_var(values, groups, P, min_count):
     cnt = np.bincount(groups, minlength=P).astype(np.float64)
     s1 = np.bincount(groups, weights=values, minlength=P)
     s2 = np.bincount(groups, weights=values * values, minlength=P)
+    return _moments(cnt, s1, s2, min_count)
+
+
+def _moments(cnt, s1, s2, min_count):
+    """:func:`grouped_var` from the count, sum and sum of squares of each group."""
     with np.errstate(invalid="ignore", divide="ignore"):
         mean = s1 / cnt
         var = (s2 - cnt * mean * mean) / (cnt - 1)
@@ -78,13 +94,24 @@ def grouped_var(values, groups, P, min_count):
     return mean, var, cnt
 
 
-def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None) -> PixelStats:
+def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None, times: tuple | None = None,
+                values: bool = True) -> PixelStats:
     """Timing statistics of every pixel of ``spikes [T, H, W]`` (see :class:`PixelStats`).
     ``clock [T]``: the time of each frame to measure intervals in (``isi_mean``, ``isi_var``,
-    ``span_var``, ``diff_var``, ``isi_values``; :func:`population_clock`); None: frames."""
+    ``span_var``, ``diff_var``, ``isi_values``; :func:`population_clock`); None: frames.
+    ``times``: :func:`spike_times` of ``spikes`` if already computed. ``values`` False: no
+    ``isi_values`` (None). With frames as the clock every sum is of whole numbers and comes from
+    running sums over the pixel-major spike indices (:func:`frame_stats`): the same bits."""
     T = spikes.shape[0]
     P = int(np.prod(spikes.shape[1:]))
-    pix, t = spike_times(spikes)
+    if clock is None:
+        if times is None:
+            idx, starts, _ = pixel_major_spikes(spikes)
+        else:
+            idx = times[0] * T + times[1]
+            starts = np.searchsorted(idx, np.arange(P + 1, dtype=np.int64) * T)
+        return frame_stats(idx, starts, T, extremes=True, values=values)
+    pix, t = times if times is not None else spike_times(spikes)
     n = np.bincount(pix, minlength=P)
     ends = np.cumsum(n)
     starts = ends - n
@@ -114,23 +141,170 @@ def pixel_stats(spikes: np.ndarray, clock: np.ndarray | None = None) -> PixelSta
     isi_min, isi_max = _isi_extremes(frames_isi, isi_pix, P)
     ones = np.bincount(isi_pix, weights=(frames_isi == 1).astype(np.float64), minlength=P)
     single = (n_isi >= 3) & (isi_min == isi_max)
-    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi,
-                      diff_var)
+    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi,
+                      isi if values else None, diff_var)
 
 
-def intervals(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """``(isi_values, interval pixels)`` of :func:`pixel_stats` and :func:`interval_pixels` alone."""
-    pix, t = spike_times(spikes)
+def intervals(spikes: np.ndarray, times: tuple | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """``(isi_values, interval pixels)`` of :func:`pixel_stats` and :func:`interval_pixels` alone
+    (``times``: :func:`spike_times` of ``spikes`` if already computed)."""
+    pix, t = times if times is not None else spike_times(spikes)
     same = pix[1:] == pix[:-1]
     return (t[1:] - t[:-1])[same].astype(np.float64), pix[1:][same]
 
 
 def interval_moments(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(isi_mean, isi_var, n_isi)`` of :func:`pixel_stats` alone (the same numbers, cheaper)."""
-    P = int(np.prod(spikes.shape[1:]))
-    pix, t = spike_times(spikes)
-    same = pix[1:] == pix[:-1]
-    return grouped_var((t[1:] - t[:-1])[same].astype(np.float64), pix[1:][same], P, 3)
+    """``(isi_mean, isi_var, n_isi)`` of :func:`pixel_stats` alone (the same numbers, cheaper).
+
+    :func:`grouped_var` of whole-frame intervals adds whole numbers, exactly: its sums are the
+    integers ``last - first`` and the sum of squared intervals, which come here from each pixel's
+    first and last spike and from a running sum of squared differences of the spike indices
+    (pixel major: within a pixel they are its intervals), without sorting the intervals out by
+    pixel; the same formulas on the same sums give the same bits."""
+    idx, starts, _ = pixel_major_spikes(spikes)
+    P = starts.size - 1
+    n = np.diff(starts)
+    sq = np.zeros(idx.size, dtype=np.int64)  # sq[k]: sum of squared differences of idx[0..k]
+    if idx.size > 1:
+        d = np.diff(idx)
+        entry = starts[:-1][(n > 0) & (starts[:-1] > 0)]  # a pixel's first spike: no interval before it
+        d[entry - 1] = 0
+        np.cumsum(d * d, out=sq[1:])
+    two = n >= 2
+    cnt = np.maximum(n - 1, 0).astype(np.float64)
+    s1 = np.zeros(P)
+    s2 = np.zeros(P)
+    first, last = starts[:-1][two], starts[1:][two] - 1  # positions in idx
+    s1[two] = (idx[last] - idx[first]).astype(np.float64)
+    s2[two] = (sq[last] - sq[first]).astype(np.float64)
+    return _moments(cnt, s1, s2, 3)
+
+
+def interval_variances(spikes: np.ndarray) -> PixelStats:
+    """The :func:`pixel_stats` (frames as the clock, the same bits) that
+    :func:`excess_interval_var` takes: ``n``, ``first``, ``last``, ``rate``, ``isi_mean``,
+    ``isi_var``, ``n_isi``, ``span_var`` and ``diff_var``; the others are None (cheaper)."""
+    idx, starts, T = pixel_major_spikes(spikes)
+    return frame_stats(idx, starts, T, extremes=False, values=False)
+
+
+def frame_stats(idx: np.ndarray, starts: np.ndarray, T: int, extremes: bool, values: bool) -> PixelStats:
+    """:func:`pixel_stats` with frames as the clock from the pixel-major spike indices ``idx`` and
+    each pixel's ``starts`` in them (:func:`pixel_major_spikes`). Every sum of :func:`grouped_var`
+    adds whole numbers (intervals, their differences, their spans of MAX_SPAN intervals), so it is
+    taken exactly from running sums over each pixel's range of them, without sorting the values
+    out by pixel. ``extremes`` False: no ``isi_min``, ``single``, ``ones``; ``values`` False: no
+    ``isi_values`` (None)."""
+    P = starts.size - 1
+    n = np.diff(starts)
+    lo = starts[:-1]
+    has = n > 0
+    base = np.arange(P, dtype=np.int64) * T
+    first, last = np.full(P, -1, dtype=np.int64), np.full(P, -1, dtype=np.int64)
+    first[has] = idx[lo[has]] - base[has]
+    last[has] = idx[starts[1:][has] - 1] - base[has]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        rate = np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
+    d = np.diff(idx)  # within a pixel: its intervals
+    cross = lo[has & (lo > 0)] - 1  # the differences across two pixels
+    d[cross] = 0  # (keeps the running sums small; never inside a pixel's range)
+    dd = np.diff(d)  # within a pixel's range: differences of consecutive intervals
+    span = np.minimum(idx[MAX_SPAN:] - idx[:-MAX_SPAN], T)  # within a pixel's range: spans of MAX_SPAN intervals
+
+    def range_sums(x, k):
+        """The sum of ``x`` over each pixel's range ``[lo, lo + n - k)``, float64 (0 if empty)."""
+        cnt = np.maximum(n - k, 0)
+        ok = cnt > 0
+        c = np.zeros(x.size + 1, dtype=np.int64)
+        np.cumsum(x, out=c[1:])
+        out = np.zeros(P)
+        out[ok] = (c[lo[ok] + cnt[ok]] - c[lo[ok]]).astype(np.float64)
+        return out
+
+    def moments(x, k):
+        """grouped_var of ``x`` over each pixel's range (``n - k`` values)."""
+        return _moments(np.maximum(n - k, 0).astype(np.float64), range_sums(x, k), range_sums(x * x, k), 3)
+
+    isi_mean, isi_var, n_isi = moments(d, 1)
+    _, diff_var, n_d = moments(dd, 2)
+    diff_var = diff_var / (1.0 + 1.0 / np.maximum(n_d, 1))  # as pixel_stats
+    _, span_var, _ = moments(span, MAX_SPAN)
+    isi_min = single = ones = None
+    if extremes:
+        two = n >= 2
+        isi_min, isi_max = np.zeros(P), np.zeros(P)
+        if two.any():  # a pixel's range up to the next pixel with intervals: its own, then differences across pixels
+            heads = lo[two]
+            d_min = d.copy()
+            d_min[cross] = np.iinfo(np.int64).max
+            isi_min[two] = np.minimum.reduceat(d_min, heads)
+            isi_max[two] = np.maximum.reduceat(d, heads)  # (0 across pixels)
+            ones = range_sums(d == 1, 1)
+        else:  # as pixel_stats: np.bincount of no intervals gives whole numbers
+            ones = np.zeros(P, dtype=np.int64)
+        single = (n_isi >= 3) & (isi_min == isi_max)
+    isi_values = None
+    if values:
+        inside = np.ones(d.size, dtype=bool)
+        inside[cross] = False
+        isi_values = d[inside].astype(np.float64)
+    return PixelStats(T, n, first, last, rate, isi_mean, isi_var, span_var, isi_min, single, ones, n_isi, isi_values,
+                      diff_var)
+
+
+def interval_moments_by_frame(spikes: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """:func:`interval_moments` of a 0/1 stream (the same bits) by a pass over the frames instead of
+    the spikes: each pixel's last spike time is carried from frame to frame and every spike adds
+    its squared interval (whole numbers, exact in float64 below 2**53); the counts and first spikes from
+    windows of FIRST_WINDOW frames (:func:`counts_and_first_spikes`). Cheaper than listing the
+    spikes for a block of many pixels (a simulated block of rows)."""
+    T = spikes.shape[0]
+    frames = spikes.reshape(T, -1)
+    P = frames.shape[1]
+    last, s2 = np.zeros(P), np.zeros(P)
+    s, d = np.empty(P), np.empty(P)
+    for t in range(T):
+        np.copyto(s, frames[t])
+        np.subtract(t, last, out=d)
+        d *= s  # the interval that ends here (since frame 0 for a first spike), 0 without a spike
+        last += d  # last spike time
+        d *= d
+        s2 += d
+    n, first = counts_and_first_spikes(frames)
+    first = first.astype(np.float64)
+    two = n >= 2
+    s2 = np.where(two, s2 - first * first, 0.0)  # the first spike's own term, (first - 0) ** 2
+    s1 = np.where(two, last - first, 0.0)
+    return _moments(np.maximum(n - 1, 0).astype(np.float64), s1, s2, 3)
+
+
+FIRST_WINDOW = 64
+
+
+def counts_and_first_spikes(frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(n, first)``, ``int64 [P]`` each: the spikes of each pixel of ``frames [T, P]`` (0/1) and
+    the frame of its first spike (0 without one), from the counts in windows of FIRST_WINDOW
+    frames: the first window with a spike, then the frame within it."""
+    T, P = frames.shape
+    w = FIRST_WINDOW
+    m = T // w * w
+    counts = np.zeros((T // w, P), dtype=np.uint16)
+    for j in range(w):  # w strided frames at a time: much faster than a reduction over the middle axis
+        np.add(counts, frames[j:m:w], out=counts)
+    rest = frames[m:]
+    n = counts.sum(axis=0, dtype=np.int64) + rest.sum(axis=0, dtype=np.int64)
+    first = np.zeros(P, dtype=np.int64)
+    cols = np.arange(P)
+    if counts.shape[0]:
+        k = np.argmax(counts > 0, axis=0)
+        inside = frames[k[None, :] * w + np.arange(w)[:, None], cols[None, :]]  # [w, P]
+        first = k * w + np.argmax(inside > 0, axis=0)
+        late = counts[k, cols] == 0  # no spike before frame m
+    else:
+        late = np.ones(P, dtype=bool)
+    if rest.shape[0]:
+        first = np.where(late, m + np.argmax(rest > 0, axis=0), first)
+    return n, first
 
 
 def _isi_extremes(isi, isi_pix, P):
@@ -145,17 +319,18 @@ def _isi_extremes(isi, isi_pix, P):
     return isi_min, isi_max
 
 
-def interval_pixels(spikes: np.ndarray) -> np.ndarray:
-    """``int64 [n_isi_total]``: the pixel of each interval, in the order of ``PixelStats.isi_values``."""
-    pix, _ = spike_times(spikes)
+def interval_pixels(spikes: np.ndarray, times: tuple | None = None) -> np.ndarray:
+    """``int64 [n_isi_total]``: the pixel of each interval, in the order of ``PixelStats.isi_values``
+    (``times``: :func:`spike_times` of ``spikes`` if already computed)."""
+    pix, _ = times if times is not None else spike_times(spikes)
     return pix[1:][pix[1:] == pix[:-1]]
 
 
-def serial_correlation(spikes: np.ndarray) -> np.ndarray:
+def serial_correlation(spikes: np.ndarray, times: tuple | None = None) -> np.ndarray:
     """``[P]`` lag-1 correlation of consecutive intervals of each pixel (NaN below 4 pairs or
-    where the intervals do not vary)."""
+    where the intervals do not vary); ``times``: :func:`spike_times` of ``spikes`` if already computed."""
     P = int(np.prod(spikes.shape[1:]))
-    pix, t = spike_times(spikes)
+    pix, t = times if times is not None else spike_times(spikes)
     same2 = (pix[2:] == pix[1:-1]) & (pix[1:-1] == pix[:-2])
     a = (t[1:-1] - t[:-2])[same2].astype(np.float64)
     b = (t[2:] - t[1:-1])[same2].astype(np.float64)
@@ -180,6 +355,26 @@ def window_rate(spikes: np.ndarray) -> np.ndarray:
     last = T - 1 - np.argmax(fired[::-1], axis=0)
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / T).astype(np.float64)
+
+
+def split_window_rates(idx: np.ndarray, starts: np.ndarray, T: int, cut: int) -> tuple[np.ndarray, np.ndarray]:
+    """:func:`window_rate` of frames ``0:cut`` and of frames ``cut:T`` of a stream of ``T`` frames
+    whose spikes are ``idx`` and ``starts`` (:func:`pixel_major_spikes`): the same numbers, each
+    pixel's spikes on either side of ``cut`` found by bisection."""
+    P = starts.size - 1
+    base = np.arange(P, dtype=np.int64) * T
+    split = np.searchsorted(idx, base + cut)
+    last_index = max(idx.size - 1, 0)
+
+    def rate(lo, hi, length):
+        n = hi - lo
+        if idx.size == 0:
+            return (n / length).astype(np.float64)
+        first, last = idx[np.minimum(lo, last_index)] - base, idx[np.clip(hi - 1, 0, last_index)] - base
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(n >= 2, (n - 1) / np.maximum(last - first, 1), n / length).astype(np.float64)
+
+    return rate(starts[:-1], split, cut), rate(split, starts[1:], T - cut)
 
 
 def excess_interval_var(meas: PixelStats, noisy: np.ndarray | None = None) -> np.ndarray:
@@ -385,12 +580,25 @@ def fit_sine(signal: np.ndarray, light: np.ndarray, min_period: float = 6.0, max
 
 
 def _local_median(values, freqs, rel, absolute):
-    """Median of ``values`` within ``+-max(rel f, absolute)`` of each frequency ``f``."""
-    out = np.empty_like(values)
-    for i, f in enumerate(freqs):
-        half = max(rel * f, absolute)
-        a, b = np.searchsorted(freqs, [f - half, f + half])
-        out[i] = np.median(values[a:b])
+    """Median of ``values`` within ``+-max(rel f, absolute)`` of each frequency ``f`` (``freqs``
+    increasing). Both ends of the window only move up with ``f``, so its values are kept sorted
+    as it slides (bisection) instead of partitioned anew for each frequency, which grew with the
+    square of the number of frequencies; the median of an even count is the mean of the middle
+    two, as np.median's."""
+    freqs = np.asarray(freqs, dtype=np.float64)
+    half = np.maximum(rel * freqs, absolute)
+    lo, hi = np.searchsorted(freqs, freqs - half), np.searchsorted(freqs, freqs + half)
+    vals = np.asarray(values, dtype=np.float64).tolist()
+    out = np.empty(len(vals))
+    window, a, b = [], 0, 0
+    for i in range(len(vals)):
+        for j in range(b, int(hi[i])):
+            bisect.insort(window, vals[j])
+        for j in range(a, int(lo[i])):
+            del window[bisect.bisect_left(window, vals[j])]
+        a, b = max(a, int(lo[i])), max(b, int(hi[i]))
+        k = len(window)
+        out[i] = window[k // 2] if k % 2 else (window[k // 2 - 1] + window[k // 2]) / 2.0
     return out
 
 
