@@ -91,6 +91,33 @@ def test_removing_the_trend_gives_back_the_static_shot_noise():
     assert m_corr < 0  # the residuals are not positively correlated
 
 
+@pytest.mark.parametrize("ne", [1500.0, 6000.0])
+def test_matched_shot_noise_reads_the_true_electrons(ne):
+    """drift.matched_shot_noise on shot noise of known N_e, at rates 0.15-0.6 where whole frames
+    bend the measure: within 3 standard errors and 15 % of the truth, and its last simulation
+    reproduces the measured value within their errors; the first simulation (at 2e4, far from
+    both) alone would be further off."""
+    x = _scene()
+    s = simulate(x, 256.0, Sensor(electrons=ne), frames=T, seed=21)
+    p = stats.pixel_stats(s)
+    mask = p.n_isi >= 8
+    r = drift.matched_shot_noise(s, mask)
+    assert r.pixels == int(mask.sum()) and len(r.steps) == drift.MATCH_STEPS
+    assert abs(r.electrons - ne) < 3 * r.standard_error and abs(r.electrons / ne - 1) < 0.15
+    assert abs(r.simulated[0] - r.measured[0]) < 3 * math.hypot(r.simulated[1], r.measured[1])
+    first = r.steps[0][0] * r.steps[0][1] / r.measured[0]  # one simulation at the start, rescaled
+    assert abs(first / ne - 1) > abs(r.electrons / ne - 1)
+
+
+def test_matched_shot_noise_of_the_ideal_sensor_is_none():
+    """No interval noise beyond the ideal sensor's: 1 / N_e within 3 standard errors of 0 and far
+    below a quarter of the 1 / N_e of the weakest shot noise the test above uses."""
+    s = simulate(_scene(), 256.0, Sensor(), frames=T, seed=21)
+    r = drift.matched_shot_noise(s, stats.pixel_stats(s).n_isi >= 8)
+    assert abs(r.inverse) < 3 * r.inverse_se and abs(r.inverse) < 0.25 / 6000.0
+    assert r.inverse <= 0 or r.electrons > 6e4
+
+
 def test_detrended_intervals_of_a_steady_ramp_of_intervals():
     # one pixel whose intervals lengthen by one frame each time: a quadratic in time nearly follows them
     times = np.cumsum(np.arange(5, 17))

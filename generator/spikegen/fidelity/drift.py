@@ -13,6 +13,8 @@ reads as a low N_e (docs/lowlight.md). Here:
 - :func:`detrended_intervals`: each pixel's interval variance about a polynomial in time fitted
   to its own intervals, so that a slow change of its rate is left out.
 - :func:`window_change_map`: each row's (column's) rate in windows relative to its mean.
+- :func:`matched_shot_noise`: the N_e of the shot noise whose simulation has a recording's
+  detrended interval variance (:func:`interval_excess`), found by simulating it.
 - :func:`image_motion`: the same shift measured band by band on a bands.Stream, with its noise
   floor from interleaved frames and a check that blocks of the frame move alike, for
   ``spikegen diagnose --reference self`` (a whole-image motion moves its reference).
@@ -174,6 +176,89 @@ def detrended_intervals(spikes: np.ndarray, degree: int = 2) -> tuple[np.ndarray
     corr = np.where((m >= 4) & (va > 1e-12) & (vc > 1e-12), corr, np.nan)
     return var, corr, n
 
+
+
+# ---------------------------------------------------------------------- shot noise matched by simulation
+MATCH_SEED = 2024  # the ideal reference draws this seed, the shot-noise simulations MATCH_SEED + 1
+MATCH_START = 2e4  # electrons of the first shot-noise simulation
+MATCH_STEPS = 4  # simulations at the current estimate (each step rescales it by simulated / measured)
+
+
+def interval_excess(spikes: np.ndarray, reference_var: np.ndarray, rate: np.ndarray,
+                    mask: np.ndarray) -> tuple[float, float, int]:
+    """``(mean, standard error, pixels)`` over the pixels of ``mask [P]`` (those with a finite
+    value) of ``(v - reference_var) * rate^2``, ``v`` the :func:`detrended_intervals` variance
+    (degree 2) of ``spikes``: the interval variance beyond a reference's in the units of
+    ``1 / N_e`` (shot noise of N_e electrons gives intervals of variance ``1 / (N_e rate^2)``)."""
+    v, _, _ = detrended_intervals(spikes, 2)
+    y = (v - reference_var) * rate ** 2
+    m = np.asarray(mask, dtype=bool).reshape(-1) & np.isfinite(y)
+    n = int(m.sum())
+    if n < 2:
+        return float("nan"), float("inf"), n
+    return float(y[m].mean()), float(y[m].std() / np.sqrt(n)), n
+
+
+@dataclass(frozen=True)
+class MatchedShotNoise:
+    """Shot noise whose simulation has the measured detrended interval variance
+    (:func:`matched_shot_noise`). inverse / inverse_se: ``1 / N_e`` and its standard error, from
+    the last simulation (``inverse = measured / simulated / steps[-1][0]``; negative when the
+    recording varies less than the ideal sensor); electrons: ``1 / inverse`` (inf where it is not
+    positive); measured / simulated: ``(mean, SE)`` of :func:`interval_excess` of the recording
+    and of the last simulation; steps: ``(electrons simulated, its interval_excess mean)`` of each
+    simulation; pixels: how many pixels were averaged."""
+
+    inverse: float
+    inverse_se: float
+    measured: tuple[float, float]
+    simulated: tuple[float, float]
+    steps: tuple[tuple[float, float], ...]
+    pixels: int
+
+    @property
+    def electrons(self) -> float:
+        return 1.0 / self.inverse if self.inverse > 0 else float("inf")
+
+    @property
+    def standard_error(self) -> float:
+        """Of N_e (first order): ``inverse_se / inverse^2``."""
+        return self.inverse_se / self.inverse ** 2 if self.inverse > 0 else float("inf")
+
+
+def matched_shot_noise(spikes: np.ndarray, mask: np.ndarray, intensity: float = 256.0, seed: int = MATCH_SEED,
+                       start: float = MATCH_START, steps: int = MATCH_STEPS) -> MatchedShotNoise:
+    """N_e of the shot noise that gives a recording's interval variance, each pixel's slow trend
+    removed (:func:`detrended_intervals`), over the pixels of ``mask [P]``.
+
+    The radiance is the one that makes the ideal sensor at ``intensity`` fire at each pixel's
+    measured mean rate (``min(rate, 1) * 256 / intensity``). :func:`interval_excess` of the
+    recording against the ideal sensor's simulation of that radiance (``seed``) is compared with
+    the same measure of shot-noise simulations of it (``seed + 1`` each): starting at ``start``
+    electrons, each step simulates the current estimate and rescales it by simulated / measured,
+    so that the last simulations come close to the measured value (at these rates the measure is
+    not proportional to ``1 / N_e``: quantisation to whole frames bends it); ``steps``
+    simulations while the measured value is positive, else one. This measures all of the interval
+    variance beyond the ideal sensor's; ``stats.excess_interval_var``, which ``spikegen
+    diagnose`` uses, measures the part that accumulates over spans of intervals."""
+    from ..sensor import Sensor, simulate
+
+    T = spikes.shape[0]
+    rate = spikes.reshape(T, -1).mean(axis=0, dtype=np.float64)
+    x = np.minimum(spikes.mean(axis=0, dtype=np.float64), 1.0) * (256.0 / intensity)
+    ref, _, _ = detrended_intervals(simulate(x, intensity, Sensor(), frames=T, seed=seed), 2)
+    measured = interval_excess(spikes, ref, rate, mask)
+    electrons, done = float(start), []
+    for _ in range(steps if measured[0] > 0 else 1):
+        sim = interval_excess(simulate(x, intensity, Sensor(electrons=electrons), frames=T, seed=seed + 1), ref,
+                              rate, mask)
+        done.append((electrons, sim[0]))
+        inverse = measured[0] / sim[0] / electrons
+        if not inverse > 0:
+            break
+        electrons = 1.0 / inverse
+    inverse_se = abs(1.0 / done[-1][0]) * float(np.hypot(measured[1] / sim[0], measured[0] * sim[1] / sim[0] ** 2))
+    return MatchedShotNoise(float(inverse), inverse_se, measured, (sim[0], sim[1]), tuple(done), measured[2])
 
 # ---------------------------------------------------------------------- inside spikegen diagnose
 MOTION_WINDOWS = 8  # windows of frames the image's shift is measured in
