@@ -238,9 +238,11 @@ def matched_shot_noise(spikes: np.ndarray, mask: np.ndarray, intensity: float = 
     electrons, each step simulates the current estimate and rescales it by simulated / measured,
     so that the last simulations come close to the measured value (at these rates the measure is
     not proportional to ``1 / N_e``: quantisation to whole frames bends it); ``steps``
-    simulations while the measured value is positive, else one. This measures all of the interval
-    variance beyond the ideal sensor's; ``stats.excess_interval_var``, which ``spikegen
-    diagnose`` uses, measures the part that accumulates over spans of intervals."""
+    simulations when the measured value is positive (fewer if a simulation reads no excess),
+    else one. This measures all of the interval variance beyond the ideal sensor's;
+    ``stats.excess_interval_var``, which ``spikegen diagnose`` uses, measures on regular pixels
+    the part that accumulates over spans of intervals (docs/fidelity.md, "Shot noise measured
+    alike on both recordings")."""
     from ..sensor import Sensor, simulate
 
     T = spikes.shape[0]
