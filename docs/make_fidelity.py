@@ -124,7 +124,6 @@ def estimate_electrons(real, results):
     results["electrons"] = 1.0 / inv
     results["car_rate"] = np.minimum(car.mean(0), 1.0)
     results["car_frames"] = car.shape[0]
-    results["car_mask_pixels"] = int(car_mask.sum())
 
 
 def study_electrons(md, results, written):
@@ -167,12 +166,11 @@ def study_electrons(md, results, written):
         check.append((label, f"{_ne(m.electrons)} +- {m.standard_error:.2g}", f"{_fmt(de)} (z = {d.z:.3g})"))
         if jit == 0:
             errors += [abs(m.electrons / n - 1), abs((de or math.inf) / n - 1)]
-        if jit == 0 and n == e:  # the held-out score of the true shot noise against none
-            truth_gain = (score_sensor(s, "self", 256.0, Sensor(name="shot", electrons=n)).mean
-                          - score_sensor(s, "self", 256.0, Sensor(name="shot")).mean)
+            if n == e:  # the held-out score of the true shot noise against none
+                truth_gain = (score_sensor(s, "self", 256.0, Sensor(name="shot", electrons=n)).mean
+                              - score_sensor(s, "self", 256.0, Sensor(name="shot")).mean)
         else:
             jittered = (m.electrons, de)
-    results["jitter"] = jitter
     car_m, car_d = fits["car"].electrons, diag["car"].parameters.get("electrons")
     scores = results["joint"]["scores"]
     gain = {label: scores[label][e] - scores[label][math.inf] for label in scores}
