@@ -16,6 +16,7 @@ from click.testing import CliRunner  # noqa: E402
 from spikegen.spikeio import write_json_atomic, write_png  # noqa: E402
 from spikenerf.cli import main  # noqa: E402
 from spikenerf.train import TrainConfig, TrainError, train  # noqa: E402
+import spikenerf.train as train_module  # noqa: E402
 
 SIZE = 32
 ANGLE_X = 0.6911112070083618
@@ -134,13 +135,19 @@ def test_resume_clears_a_killed_writes_temporary(dataset, tmp_path):
     assert torch.load(run / "checkpoint.pt", weights_only=False)["iteration"] == 4
 
 
-def test_nan_loss_stops_and_keeps_last_checkpoint(dataset, tmp_path):
+def test_nan_loss_stops_and_keeps_last_checkpoint(dataset, tmp_path, monkeypatch):
     run = tmp_path / "nan"
     train(_cfg(dataset, iters=5, checkpoint_every=1), run, progress=False, log=lambda m: None)
     good = (run / "checkpoint.pt").read_bytes()
+    method_loss = train_module.method_loss
+
+    def poisoned(*args, **kw):  # the resumed run's loss turns NaN (as a diverging step makes it)
+        loss, pred, obs = method_loss(*args, **kw)
+        return loss * float("nan"), pred, obs
+
+    monkeypatch.setattr(train_module, "method_loss", poisoned)
     with pytest.raises(TrainError, match="NaN"):
-        train(_cfg(dataset, iters=10, checkpoint_every=1, lr_grid=float("nan")), run, progress=False,
-              log=lambda m: None)
+        train(_cfg(dataset, iters=10, checkpoint_every=1), run, progress=False, log=lambda m: None)
     ck = torch.load(run / "checkpoint.pt", weights_only=False)
     assert ck["iteration"] == 5 and torch.isfinite(ck["state"]["grid"]).all()
     assert (run / "checkpoint.pt").read_bytes() == good  # the last good checkpoint is kept
