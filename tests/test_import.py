@@ -304,11 +304,15 @@ def test_import_recovers_the_handheld_poses(handheld_capture, tmp_path, capsys):
     assert len(index) + len(doc["unregistered"]) == 12 and len(index) >= 10
     err = im.pose_errors(np.array([f["transform_matrix"] for f in doc["frames"]]),
                          np.array([truth[i]["transform_matrix"] for i in index]))
-    # a 12-view patch at 320 x 200, 400 frames, about 130 sparse points (measured: orientations 0.56 deg,
-    # centres 5.0 % of the extent; the full-size figures are bench/bench_import.py's, docs/real_captures.md):
-    # loose bounds that a wrong axis or sign breaks
+    # a 12-view patch at 320 x 200, 400 frames, about 130 sparse points (measured with the calibrated preset's
+    # N_e = 1.383e4: orientations 0.72 deg, centres 5.1 % of the extent; the full-size figures are
+    # bench/bench_import.py's, docs/real_captures.md): loose bounds that a wrong axis or sign breaks
     assert np.median(err["rotation_own_deg"]) < 1.0 and np.median(err["centre_frac"]) < 0.10
-    assert abs(doc["fl_x"] / cm.focal_px(320) - 1) < 0.08  # the renderer's focal length, found by SfM
+    # the renderer's focal length, found by SfM. So small a patch of forward-facing views pins it down only
+    # loosely: -17.9 % with the current preset, -3.4 % with the preset before its refit (N_e = 2.067e4),
+    # -17.0 % on the noise-free `paper` sensor (at full size, 35 views: 556.2 px against 555.6). The bound
+    # catches a focal length in other units or of the other image axis (200 / 320 = -37.5 %)
+    assert abs(doc["fl_x"] / cm.focal_px(320) - 1) < 0.25
     assert np.isclose(doc["camera_angle_x"], 2 * np.arctan(320 / (2 * doc["fl_x"])))
     from spikenerf.data import load_dataset
 
