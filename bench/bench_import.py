@@ -325,7 +325,8 @@ def main() -> None:
     if args.plot:
         plot_path(rows[0], args.plot)
     if args.view:
-        shutil.copyfile(rows[0]["out"] / (rows[0]["first"] + ".png"), args.view)
+        first = rows[0]["first"]  # the import writes file_path with its extension; older folders without
+        shutil.copyfile(rows[0]["out"] / (first if first.endswith(".png") else first + ".png"), args.view)
     if args.train:
         metrics = train_both(rows[0], args)
         report_training(rows[0], metrics)
