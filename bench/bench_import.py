@@ -52,6 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
+from spikegen.formats import png_name
 from spikegen.importer import import_capture, pose_errors
 from spikegen.spikeio import parse_size
 
@@ -325,8 +326,7 @@ def main() -> None:
     if args.plot:
         plot_path(rows[0], args.plot)
     if args.view:
-        first = rows[0]["first"]  # the import writes file_path with its extension; older folders without
-        shutil.copyfile(rows[0]["out"] / (first if first.endswith(".png") else first + ".png"), args.view)
+        shutil.copyfile(rows[0]["out"] / png_name(rows[0]["first"]), args.view)
     if args.train:
         metrics = train_both(rows[0], args)
         report_training(rows[0], metrics)

@@ -97,23 +97,30 @@ def jittered_stream(rate, frames, electrons, jitter, seed):
     return out.reshape(frames, *np.shape(rate))
 
 
+MIN_INTERVALS = 8  # a pixel's intervals for its variance to be averaged (drift.matched_shot_noise)
+
+
+def _static_mask(spikes):
+    """The pixels matched_shot_noise averages on a static scene: static (heldout.static_pixels) with at
+    least MIN_INTERVALS intervals."""
+    from spikegen.fidelity.heldout import static_pixels
+
+    return static_pixels(spikes) & (stats.pixel_stats(spikes).n_isi >= MIN_INTERVALS)
+
+
 def estimate_electrons(real, results):
     """The preset's N_e: drift.matched_shot_noise (all of the interval variance, each pixel's trend
     removed, matched by simulation) on the car's static background and on the low-light pixels
     that its image's motion hardly changes; the inverse-variance weighted mean of the two 1 / N_e."""
     from spikegen.fidelity import drift
-    from spikegen.fidelity.heldout import static_pixels
 
     car = read_spikes(real / "car_500frames_250x400.npz")
-    pc = stats.pixel_stats(car)
-    car_mask = static_pixels(car) & (pc.n_isi >= 8)
     low = read_spikes(real / "uhsr_lowlight_250x250.npz")
-    T = low.shape[0]
     shift = drift.fit_drift(low, 0, 8).shift()
-    lam = drift.expected_rates(drift.stabilised_mean(low, shift), shift).reshape(T, -1)
-    change = (lam.max(0) - lam.min(0)) / np.maximum(lam.mean(0), 1e-12)
-    low_mask = (stats.pixel_stats(low).n_isi >= 8) & (change < MOTION_LIMIT)
-    fits = {"car": drift.matched_shot_noise(car, car_mask), "low light": drift.matched_shot_noise(low, low_mask)}
+    change = drift.rate_change(drift.expected_rates(drift.stabilised_mean(low, shift), shift))
+    low_mask = (stats.pixel_stats(low).n_isi >= MIN_INTERVALS) & (change < MOTION_LIMIT)
+    fits = {"car": drift.matched_shot_noise(car, _static_mask(car)),
+            "low light": drift.matched_shot_noise(low, low_mask)}
     w = {k: 1.0 / f.inverse_se ** 2 for k, f in fits.items()}
     inv = sum(w[k] * f.inverse for k, f in fits.items()) / sum(w.values())
     inv_se = 1.0 / math.sqrt(sum(w.values()))
@@ -150,7 +157,6 @@ def study_electrons(md, results, written):
     e_diag = diag["car"].parameters.get("electrons") or math.inf
     gap = fits["car"].inverse - (1.0 / e_diag if math.isfinite(e_diag) else 0.0)
     jitter = math.sqrt(gap / 2.0) if gap > 0 else 0.0
-    from spikegen.fidelity.heldout import static_pixels
     cases = [(f"shot noise N_e = {_ne(n)}", n, 0.0) for n in (CHECK_ELECTRONS[0], e, CHECK_ELECTRONS[1])]
     if jitter > 0 and math.isfinite(e_diag):
         cases.append((f"shot noise N_e = {_ne(e_diag)} + threshold jitter SD {jitter:.2g}, not accumulating",
@@ -159,8 +165,7 @@ def study_electrons(md, results, written):
     for label, n, jit in cases:
         s = (jittered_stream(x, T, n, jit, CHECK_SEED) if jit > 0
              else simulate(x, 256.0, Sensor(electrons=n), frames=T, seed=CHECK_SEED))
-        mask = static_pixels(s) & (stats.pixel_stats(s).n_isi >= 8)
-        m = drift.matched_shot_noise(s, mask)
+        m = drift.matched_shot_noise(s, _static_mask(s))
         d = diagnose(s, "self", 256.0).effect("shot_noise")
         de = d.parameters.get("electrons")
         check.append((label, f"{_ne(m.electrons)} +- {m.standard_error:.2g}", f"{_fmt(de)} (z = {d.z:.3g})"))

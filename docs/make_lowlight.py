@@ -171,8 +171,7 @@ def study_intervals(data, md, res):
 
     low = data["low light"]
     T = low.shape[0]
-    lam = res["lam"].reshape(T, -1)
-    change = (lam.max(0) - lam.min(0)) / np.maximum(lam.mean(0), 1e-12)
+    change = drift.rate_change(res["lam"])
     x = np.minimum(low.mean(0), 1.0)
     pm = stats.pixel_stats(low)
     ideal = simulate(x, I, Sensor(), frames=T, seed=SEED)

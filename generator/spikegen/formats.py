@@ -164,8 +164,7 @@ class ViewRecord:
 
     @property
     def png(self) -> Path:
-        stem = self.stem or self.file_path
-        return self._root() / (stem if stem.endswith(".png") else stem + ".png")
+        return self._root() / png_name(self.stem or self.file_path)
 
     @property
     def exrs(self) -> tuple[Path, ...]:
@@ -611,6 +610,12 @@ UNMODELLED_LENS_KEYS = ("k2", "k3", "k4", "p1", "p2")  # OpenCV coefficients a t
 RECONSTRUCTIONS = ("tfi", "tfp")  # spikegen.recon methods an import can write as the views' images
 
 
+def png_name(file_path: str) -> str:
+    """A frame's image: its ``file_path`` with ``.png`` added unless it carries it already (an import
+    writes it with the extension, NeRF-synthetic folders without): ``./train/r_0`` -> ``./train/r_0.png``."""
+    return file_path if file_path.endswith(".png") else file_path + ".png"
+
+
 def truth_name(file_path: str) -> str:
     """Where an imported view's ground-truth image lives: ``./train/r_0`` -> ``./train/r_0_truth.png``."""
     return file_path + "_truth.png"
@@ -729,7 +734,7 @@ class CaptureTransforms:
         tries image extensions on a path without one; NeRF-synthetic loaders add ``.png``);
         :class:`ViewRecord` reads both."""
         base = Transforms(self.intrinsics.camera_angle_x, self.spike, self.frames).to_json()
-        frames = [{**fr, "file_path": fr["file_path"] + ".png", "image_kind": IMAGE_KIND_RECONSTRUCTION,
+        frames = [{**fr, "file_path": png_name(fr["file_path"]), "image_kind": IMAGE_KIND_RECONSTRUCTION,
                    "reconstruction": self.reconstruction,
                    "source_file": src, "near": float(b[0]), "far": float(b[1]),
                    **({GROUND_TRUTH_KEY: truth_name(fr["file_path"])} if self.ground_truth else {})}

@@ -261,8 +261,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     field = make_field(cfg, W, space).to(device)
     opt = make_optimizer(field, cfg)
     schedule = grid_schedule(cfg, W)
-    moving = any(not v.is_static() for v in ds.splits["train"])
-    legacy_windows = method.windows if method.target == "counts" and moving else 1  # runs from before --windows
+    legacy_windows = count_windows(ds, method, H, W, cfg.frames, method.windows)  # runs from before --windows
     field, opt, start, train_s, space = _resume(ck_path, cfg, (ds.frames, legacy_windows), device, field, opt, space,
                                                 log)
     write_json_atomic(out / "config.json", {**cfg.to_json(), "device_used": str(device), "height": H, "width": W,

@@ -121,6 +121,13 @@ def expected_rates(mean_image: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.stack([_shift_rows(mean_image, float(x)) for x in d])
 
 
+def rate_change(expected: np.ndarray) -> np.ndarray:
+    """``[P]``: how much the motion changes each pixel's rate, ``(max - min) / mean`` over the
+    frames of :func:`expected_rates` ``[T, ...]`` (a pixel the motion hardly changes is near 0)."""
+    lam = expected.reshape(expected.shape[0], -1)
+    return (lam.max(0) - lam.min(0)) / np.maximum(lam.mean(0), 1e-12)
+
+
 def window_change_map(spikes: np.ndarray, axis: int = 0, windows: int = 8,
                       expected: np.ndarray | None = None) -> np.ndarray:
     """``[windows, H]`` (axis 0) or ``[windows, W]`` (axis 1): each row's (column's) spike count
@@ -246,8 +253,9 @@ def matched_shot_noise(spikes: np.ndarray, mask: np.ndarray, intensity: float = 
     from ..sensor import Sensor, simulate
 
     T = spikes.shape[0]
-    rate = spikes.reshape(T, -1).mean(axis=0, dtype=np.float64)
-    x = np.minimum(spikes.mean(axis=0, dtype=np.float64), 1.0) * (256.0 / intensity)
+    mean = spikes.mean(axis=0, dtype=np.float64)
+    rate = mean.reshape(-1)
+    x = np.minimum(mean, 1.0) * (256.0 / intensity)
     ref, _, _ = detrended_intervals(simulate(x, intensity, Sensor(), frames=T, seed=seed), 2)
     measured = interval_excess(spikes, ref, rate, mask)
     electrons, done = float(start), []
