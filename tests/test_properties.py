@@ -88,6 +88,7 @@ def any_sensor(draw, h, w):
                   electrons=draw(st.sampled_from([0.0, 4.0, 60.0, 500.0])),
                   reset=draw(st.sampled_from(["subtract", "zero"])),
                   refractory_frames=draw(st.integers(0, 3)),
+                  threshold_jitter=draw(st.sampled_from([0.0, 0.05, 0.25])),
                   flicker_period_frames=draw(st.sampled_from([0.0, 7.0])),
                   flicker_depth=0.0,
                   crosstalk_fraction=draw(st.sampled_from([0.0, 0.1])) if h * w > 1 else 0.0,  # see below

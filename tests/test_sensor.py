@@ -163,9 +163,61 @@ def test_bad_input(bad, match):
 
 
 def test_bad_sensor_parameters():
+    for bad in (-0.01, float("nan"), 0.3):
+        with pytest.raises(InputError, match="threshold_jitter"):
+            Sensor(threshold_jitter=bad)
     with pytest.raises(InputError, match="reset"):
         Sensor(reset="sometimes")
     with pytest.raises(InputError, match="electrons"):
         Sensor(electrons=-1)
     with pytest.raises(InputError, match="maps are"):
         simulate(np.ones((8, 8)), 32, Sensor(responsivity=np.ones((4, 8))))
+
+
+def _intervals(spikes):
+    """Per pixel of ``uint8 [T, H, W]``: the variance of single intervals, of spans of 4
+    intervals, and the lag-1 serial correlation of intervals (means over the pixels)."""
+    T, H, W = spikes.shape
+    v1, v4, rho = [], [], []
+    for p in range(H * W):
+        t = np.flatnonzero(spikes[:, p // W, p % W])
+        d = np.diff(t)
+        v1.append(d.var())
+        v4.append((t[4:] - t[:-4]).var())
+        rho.append(np.corrcoef(d[1:], d[:-1])[0, 1])
+    return float(np.mean(v1)), float(np.mean(v4)), float(np.mean(rho))
+
+
+def test_threshold_jitter_does_not_accumulate():
+    """A firing level of relative SD sigma, the nominal threshold subtracted: at a constant rate
+    lambda = 0.1 (intervals of exactly 10 frames without noise) the intervals get variance
+    2 sigma^2 / lambda^2 plus the frame quantisation of two spike times (2 / 12), a span of 4
+    intervals the same (not 4 times it, as shot noise gives), consecutive intervals correlate
+    by -1/2, and the mean rate is unchanged."""
+    x = np.full((24, 24), 0.1 * 256 / 64)
+    sigma, lam, T = 0.05, 0.1, 3000
+    s = simulate(x, 64, Sensor(threshold_jitter=sigma), frames=T, seed=3)
+    assert abs(s.sum(0).mean() / T - lam) < 2e-4
+    v1, v4, rho = _intervals(s)
+    assert v1 == pytest.approx(2 * sigma ** 2 / lam ** 2 + 2 / 12, rel=0.05)
+    assert v4 == pytest.approx(v1, rel=0.05)
+    assert rho == pytest.approx(-0.5, abs=0.03)
+    # shot noise of about the same single-interval variance accumulates over the span
+    shot = simulate(x, 64, Sensor(electrons=200.0), frames=T, seed=3)
+    s1, s4, _ = _intervals(shot)
+    assert s1 == pytest.approx(v1, rel=0.1) and s4 > 3 * s1
+
+
+def test_threshold_jitter_is_seeded_and_split_free():
+    """The jitter's draws come from each row block's own stream: the same bits whole, by rows,
+    in threads; another seed differs; jitter 0 keeps the sensor's fast path bits."""
+    x = _moving_scene(H=24, W=20)
+    sensor = Sensor(threshold_jitter=0.08, electrons=500.0)
+    whole = simulate(x, 64, sensor, seed=9)
+    np.testing.assert_array_equal(whole, simulate(x, 64, sensor, seed=9, threads=2))
+    parts = np.concatenate([simulate(x, 64, sensor, seed=9, rows=(r, r + 8)) for r in (0, 8, 16)], axis=1)
+    np.testing.assert_array_equal(whole, parts)
+    assert not np.array_equal(whole, simulate(x, 64, sensor, seed=10))
+    assert not np.array_equal(whole, simulate(x, 64, sensor.replace(threshold_jitter=0.0), seed=9))
+    np.testing.assert_array_equal(simulate(x, 64, Sensor(electrons=500.0), seed=9),
+                                  simulate(x, 64, sensor.replace(threshold_jitter=0.0), seed=9))

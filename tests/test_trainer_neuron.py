@@ -62,6 +62,23 @@ def test_count_variance_grows_with_shot_noise():
     assert neuron.count_variance(mu, electrons=5.0)[1] == pytest.approx(1 / 6 + 2.0)
 
 
+def test_count_variance_of_threshold_jitter_matches_simulate():
+    """The simulator with a threshold jitter of relative SD 0.1: window counts keep their mean
+    and their variance grows by count_variance's 2 sigma^2 (64 windows of 32 frames, 64 x 64
+    pixels at rates 0.02-0.9; the same seed without jitter as the reference)."""
+    lam = np.random.default_rng(0).uniform(0.02, 0.9, (64, 64))
+    sigma, w, n = 0.1, 32, 64
+    res = {}
+    for j in (0.0, sigma):
+        s = simulate(lam * 4, 64, Sensor(threshold_jitter=j), frames=w * n, seed=5)
+        res[j] = s.reshape(n, w, 64, 64).sum(1).astype(np.float64) - lam[None] * w
+    assert abs(res[sigma].mean()) < 0.003
+    mu = torch.tensor([float(w) * 0.5])
+    added = float(neuron.count_variance(mu, jitter=sigma) - neuron.count_variance(mu))
+    assert added == pytest.approx(2 * sigma ** 2)
+    assert res[sigma].var() - res[0.0].var() == pytest.approx(added, abs=0.003)
+
+
 @pytest.mark.parametrize("intensity", [16, 64])
 def test_rsir_mean_charge_matches_the_reference_generator(intensity):
     # 256 pixels per radiance level, so the generator's per-frame noise averages out

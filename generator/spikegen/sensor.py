@@ -8,7 +8,11 @@ frames of spikes ``uint8 [T, H, W]``. The rate of a pixel in frame ``t`` is::
 with ``X(t)`` piecewise-linear between sub-frame centres ``(k + 0.5) T / K``. Each frame the
 pixel integrates ``q = lambda`` (or, with photon shot noise, ``Poisson(N_e lambda) / N_e``),
 fires when its accumulator reaches one threshold, subtracts it, and fires at most once a
-frame (after a spike ``A = min(A, 1)``).
+frame (after a spike ``A = min(A, 1)``). With ``threshold_jitter = sigma`` it fires instead
+when ``A`` reaches ``1 + eps``, ``eps ~ N(0, sigma^2)`` (clipped to +-JITTER_CLIP) drawn anew
+after each spike, and still subtracts the nominal threshold 1: a spike's timing error does not
+carry to the next (intervals vary by ``2 sigma^2 / lambda^2`` and consecutive ones correlate
+by -1/2), unlike shot noise, whose timing errors accumulate.
 
 Exactness. Charge is fixed-point: one threshold is ``ONE = 2**32`` units and every per-frame
 charge is an integer number of units, defined by :class:`ChargeSchedule`. Integrating
@@ -18,7 +22,8 @@ of a threshold: far below any physical effect.
 
 Randomness comes from a ``numpy.random.SeedSequence`` (see :mod:`spikegen.seeding`): child 0
 draws the start phases, child ``1 + b`` the temporal noise of row block ``b`` (blocks of
-``CHUNK_ROWS`` rows), so a stream never depends on how the work is split.
+``CHUNK_ROWS`` rows: the shot noise, then the threshold jitter's levels), so a stream never
+depends on how the work is split.
 """
 from __future__ import annotations
 
@@ -38,10 +43,12 @@ FAST_CHUNK_PIXELS = 1 << 16  # pixels integrated together on the fast path (no e
 MU_EXACT_POISSON = 30.0  # below this mean photo-electron count per frame, Poisson is drawn exactly
 NORMAL_BITS = 16  # shot noise: a standard normal quantised to 2**16 equiprobable values
 RESETS = ("subtract", "zero")
+JITTER_CLIP = 0.5  # a firing level's relative offset is clipped to +-JITTER_CLIP thresholds
+MAX_JITTER = 0.25  # the largest threshold_jitter accepted (the clip at 2 SD)
 KINDS = ("if", "rsir")
 # The sensor's scalar parameters, in the order sensor.json lists them (maps and map model apart).
-SCALAR_FIELDS = ("name", "kind", "electrons", "reset", "refractory_frames", "flicker_period_frames",
-                 "flicker_depth", "crosstalk_fraction", "gamma", "lux_to_rate", "camera_seed")
+SCALAR_FIELDS = ("name", "kind", "electrons", "reset", "refractory_frames", "threshold_jitter",
+                 "flicker_period_frames", "flicker_depth", "crosstalk_fraction", "gamma", "lux_to_rate", "camera_seed")
 
 
 @dataclass(frozen=True, eq=False)
@@ -59,6 +66,9 @@ class Sensor:
     electrons: float = 0.0  # photo-electrons per threshold N_e; 0 = no shot noise
     reset: str = "subtract"  # "subtract" (residual kept) or "zero" (reset_to_zero effect)
     refractory_frames: int = 0
+    # relative SD of the firing level, drawn anew after each spike; the reset subtracts the
+    # nominal threshold, so the jitter does not accumulate (threshold_levels); 0 = none
+    threshold_jitter: float = 0.0
     flicker_period_frames: float = 0.0
     flicker_depth: float = 0.0
     crosstalk_fraction: float = 0.0
@@ -76,9 +86,12 @@ class Sensor:
             raise InputError(f"sensor {self.name!r}: kind must be one of {KINDS}, got {self.kind!r}")
         for label, value in (("electrons", self.electrons), ("refractory_frames", self.refractory_frames),
                              ("flicker_depth", self.flicker_depth), ("crosstalk_fraction", self.crosstalk_fraction),
-                             ("flicker_period_frames", self.flicker_period_frames)):
+                             ("flicker_period_frames", self.flicker_period_frames),
+                             ("threshold_jitter", self.threshold_jitter)):
             if not (math.isfinite(value) and value >= 0):
                 raise InputError(f"sensor {self.name!r}: {label} must be finite and >= 0, got {value}")
+        if self.threshold_jitter > MAX_JITTER:
+            raise InputError(f"sensor {self.name!r}: threshold_jitter must be <= {MAX_JITTER}, got {self.threshold_jitter}")
         if not (math.isfinite(self.gamma) and self.gamma > 0):
             raise InputError(f"sensor {self.name!r}: gamma must be > 0, got {self.gamma}")
         if self.flicker_depth > 0 and self.flicker_period_frames <= 0:
@@ -128,7 +141,7 @@ class Sensor:
 
     @property
     def simple_readout(self) -> bool:
-        return self.reset == "subtract" and self.refractory_frames == 0
+        return self.reset == "subtract" and self.refractory_frames == 0 and self.threshold_jitter == 0
 
     def parameters(self) -> dict:
         """Scalar parameters (no maps), as written to ``sensor.json``: :data:`SCALAR_FIELDS` in order."""
@@ -282,35 +295,52 @@ def carry_readout(q: np.ndarray, phase: np.ndarray) -> np.ndarray:
     return np.less(acc, q)
 
 
-def loop_readout(q: np.ndarray, phase: np.ndarray, reset: str = "subtract", refractory_frames: int = 0) -> np.ndarray:
-    """Frame-by-frame integrate-and-fire, any reset and refractory period.
+def loop_readout(q: np.ndarray, phase: np.ndarray, reset: str = "subtract", refractory_frames: int = 0,
+                 jitter: float = 0.0, rng: np.random.Generator | None = None) -> np.ndarray:
+    """Frame-by-frame integrate-and-fire, any reset and refractory period, any threshold jitter.
 
     ``q int64 [T, P]`` in units of ``ONE`` (may exceed one threshold), ``phase [P]``.
-    Fires when ``A >= ONE``; subtractive reset keeps the residual and clamps ``A <= ONE``
-    (one spike a frame at most); ``reset="zero"`` discards it. During ``refractory_frames``
-    frames after a spike the pixel neither integrates nor fires. Returns ``bool [T, P]``.
+    Fires when ``A >= ONE + L`` (``L`` the pixel's firing level offset: 0 without jitter);
+    subtractive reset removes the nominal threshold ``ONE`` from a pixel that fired and keeps
+    the residual, clamped to ``A <= ONE`` (one spike a frame at most); ``reset="zero"`` discards it. During
+    ``refractory_frames`` frames after a spike the pixel neither integrates nor fires.
+    ``jitter > 0`` (needs ``rng``): ``L`` is drawn by :func:`threshold_levels` for every pixel
+    at the start and again for each pixel that fires, right after its spike (in pixel order,
+    frame by frame). Returns ``bool [T, P]``.
     """
     T, P = q.shape
     acc = phase.astype(np.int64)
     out = np.zeros((T, P), dtype=bool)
     wait = np.zeros(P, dtype=np.int64) if refractory_frames else None
+    level = threshold_levels(rng, jitter, P) + ONE if jitter > 0 else ONE
     for t in range(T):
         if wait is None:
             acc += q[t]
-            fire = acc >= ONE
+            fire = acc >= level
         else:
             active = wait == 0
             acc += np.where(active, q[t], 0)
-            fire = active & (acc >= ONE)
+            fire = active & (acc >= level)
             np.subtract(wait, 1, out=wait, where=~active)
             wait[fire] = refractory_frames
         if reset == "zero":
             acc[fire] = 0
         else:
             acc -= fire * ONE
-            np.minimum(acc, ONE, out=acc)
+            np.minimum(acc, ONE, out=acc, where=fire)  # only a pixel that fired can exceed ONE here
+        if jitter > 0:
+            fired = np.flatnonzero(fire)
+            if fired.size:
+                level[fired] = threshold_levels(rng, jitter, fired.size) + ONE
         out[t] = fire
     return out
+
+
+def threshold_levels(rng: np.random.Generator, jitter: float, n: int) -> np.ndarray:
+    """``n`` firing-level offsets, ``int64`` units of ``ONE``: ``N(0, jitter^2)`` thresholds
+    clipped to ``+-JITTER_CLIP``, drawn from ``rng`` (float64 normals, then rounded)."""
+    eps = np.clip(rng.normal(0.0, jitter, n), -JITTER_CLIP, JITTER_CLIP)
+    return np.rint(eps * ONE).astype(np.int64)
 
 
 # ---------------------------------------------------------------------- the simulator
@@ -462,7 +492,7 @@ def _dense_rows(x, r0, r1, intensity, sensor, resp, dark, phase, T, rngs, out):
             charge = _quantise(R * (intensity / 256.0 * xt + d))
     if sensor.electrons > 0:
         charge = shot_noise(charge, sensor.electrons, rng)
-    out[:] = _readout_dense(charge, a0, sensor)
+    out[:] = _readout_dense(charge, a0, sensor, rng)  # the jitter's levels: from rng after the charge's draws
 
 
 def fused_carry(sched: "ChargeSchedule", phase: np.ndarray, out: np.ndarray, noise=None) -> None:
@@ -552,9 +582,9 @@ def _noisy(charge, zs, u, exact_cols, electrons, rng) -> np.ndarray:
     return np.minimum(noisy, 2 * ONE)
 
 
-def _readout_dense(charge: np.ndarray, a0, sensor: Sensor) -> np.ndarray:
+def _readout_dense(charge: np.ndarray, a0, sensor: Sensor, rng: np.random.Generator | None = None) -> np.ndarray:
     if not sensor.simple_readout:
-        return loop_readout(charge, a0, sensor.reset, int(sensor.refractory_frames))
+        return loop_readout(charge, a0, sensor.reset, int(sensor.refractory_frames), sensor.threshold_jitter, rng)
     sat = (charge >= ONE).any(axis=0)
     if not sat.any():
         return carry_readout(charge.astype(np.uint32), a0)

@@ -113,6 +113,7 @@ class SensorMaps:
     kind: str = "if"  # "if" or "rsir"
     electrons: float = 0.0  # photo-electrons per threshold (0 = no shot noise)
     reset: str = "subtract"  # "subtract" or "zero"
+    threshold_jitter: float = 0.0  # relative SD of the firing level (0 = none)
 
 
 def _hold_out(ds: Dataset) -> None:
@@ -132,7 +133,7 @@ def load_sensor_maps(ds: Dataset, maps_file: str | None = None) -> SensorMaps:
 
     ``maps_file``: take R and the dark current from this sensor file instead (e.g. a calibration
     from ``spikegen calibrate``: what a user of a real camera has in place of its true maps); the
-    rest of the model (kind, shot noise, reset) stays the dataset's."""
+    rest of the model (kind, shot noise, reset, threshold jitter) stays the dataset's."""
     from spikegen.sensorfile import load_sensor
 
     own = ds.root / "sensor.json"
@@ -143,7 +144,7 @@ def load_sensor_maps(ds: Dataset, maps_file: str | None = None) -> SensorMaps:
     resp, dark = maps.maps(ds.height, ds.width)
     model = sensor or maps
     return SensorMaps(resp.astype(np.float32), dark.astype(np.float32), model.kind, float(model.electrons),
-                      model.reset)
+                      model.reset, float(model.threshold_jitter))
 
 
 def read_view_spikes(ds: Dataset, view: ViewRecord) -> np.ndarray:

@@ -23,7 +23,7 @@
   modelled, not blurred;
   Gaussian likelihood with the count variance of the dataset's sensor
   (:func:`neuron.count_variance`: the residual's 1/6 plus the shot noise of its
-  photo-electrons per threshold), R and d from the dataset's sensor, and the dataset
+  photo-electrons per threshold and its threshold jitter), R and d from the dataset's sensor, and the dataset
   sensor's reset (subtractive or to zero, :func:`neuron.expected_count`); when the dataset
   was made by the ``rsir`` reference generator, its exact mean charge
   (:func:`neuron.rsir_rate`: Poisson gray levels and the uniform quantisation noise make it

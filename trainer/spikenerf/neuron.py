@@ -48,14 +48,19 @@ def expected_count(lam: torch.Tensor, frames, reset: str = "subtract") -> torch.
     return frames * torch.where(lam > 1e-6, rate, torch.zeros_like(rate))
 
 
-def count_variance(mu: torch.Tensor, electrons: float = 0.0, temporal: float = 0.0) -> torch.Tensor:
+def count_variance(mu: torch.Tensor, electrons: float = 0.0, temporal: float = 0.0,
+                   jitter: float = 0.0) -> torch.Tensor:
     """Variance of an observed window count around its mean ``mu``.
 
     ``floor(A + m)`` with a uniform residual ``A`` has variance ``f (1 - f)`` (``f`` the
     fraction of ``m``), 1/6 on average; shot noise adds ``mu / N_e``; ``temporal`` is any
-    further noise variance per expected spike (e.g. a generator's per-frame noise).
+    further noise variance per expected spike (e.g. a generator's per-frame noise). A threshold
+    jitter of relative SD ``jitter`` (the sensor's ``threshold_jitter``: the reset subtracts the
+    nominal threshold, so it does not accumulate) moves only the spikes at the window's two ends
+    and adds about ``2 jitter^2`` whatever the window's length (measured against the simulator in
+    tests/test_trainer_neuron.py); its mean count is unchanged.
     """
-    var = torch.full_like(mu, 1.0 / 6.0)
+    var = torch.full_like(mu, 1.0 / 6.0 + 2.0 * float(jitter) ** 2)
     if electrons > 0:
         var = var + mu / electrons
     if temporal > 0:

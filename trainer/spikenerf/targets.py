@@ -40,6 +40,7 @@ class Targets:
     electrons: float = 0.0  # the dataset sensor's photo-electrons per threshold (0 = no shot noise)
     reset: str = "subtract"  # the dataset sensor's reset: "subtract" or "zero"
     lux_to_rate: float = 0.0  # L of the published fixed-pattern maps (neuron.paper_fpn_maps); "paper" only
+    threshold_jitter: float = 0.0  # the dataset sensor's relative SD of the firing level (0 = none)
 
 
 # --windows 0 (auto): the fewest count windows in which the image moves by at most this many pixels
@@ -165,4 +166,5 @@ def build_targets(ds: Dataset, method: Method, height: int, width: int, progress
     return Targets(np.asarray(poses, np.float32), np.asarray(values, np.float32), np.asarray(lengths, np.float32),
                    _resize(resp, height, width).reshape(-1).astype(np.float32),
                    _resize(dark, height, width).reshape(-1).astype(np.float32), height, width, kind, sensor.kind,
-                   sensor.electrons, sensor.reset, bit_camera()[0]["lux_to_rate"] if kind == "paper" else 0.0)
+                   sensor.electrons, sensor.reset, bit_camera()[0]["lux_to_rate"] if kind == "paper" else 0.0,
+                   threshold_jitter=sensor.threshold_jitter)

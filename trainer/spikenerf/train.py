@@ -131,7 +131,9 @@ def method_loss(method, x, img, pix, batch: Batch, intensity: float):
     mu = neuron.expected_count(lam, frames, tg.reset if method.exact_sensor else "subtract")
     to_x = 256.0 / (intensity * frames)  # count -> radiance-like units, for comparable loss scales
     if method.loss == "nll":
-        var = neuron.count_variance(mu.detach(), tg.electrons if method.exact_sensor else 0.0)
+        exact = method.exact_sensor
+        var = neuron.count_variance(mu.detach(), tg.electrons if exact else 0.0,
+                                    jitter=tg.threshold_jitter if exact else 0.0)
         loss = ((mu - obs).square() / (6.0 * var) * to_x.square()).mean()
     else:
         loss = ((mu - obs) * to_x).square().mean()
