@@ -21,6 +21,7 @@ reads as a low N_e (docs/lowlight.md). Here:
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
@@ -151,6 +152,38 @@ def detrended_intervals(spikes: np.ndarray, degree: int = 2) -> tuple[np.ndarray
     to that pixel's intervals by least squares: a slow change of the pixel's rate (the image
     moving over it) leaves them. The variance is ``RSS / (n - degree - 1)``, NaN below
     ``degree + 3`` intervals; the correlation is NaN below 4 pairs or without variation."""
+    g, r, n, ok, P = _detrended_residuals(spikes, degree)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = np.bincount(g, weights=r * r, minlength=P) / (n - degree - 1)
+    var = np.where(ok, var, np.nan)
+    pair = g[1:] == g[:-1]
+    a, c, gp = r[:-1][pair], r[1:][pair], g[1:][pair]
+    m = np.bincount(gp, minlength=P).astype(np.float64)
+    s = [np.bincount(gp, weights=v, minlength=P) for v in (a, c, a * c, a * a, c * c)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        ma, mc = s[0] / m, s[1] / m
+        va, vc = s[3] / m - ma * ma, s[4] / m - mc * mc
+        corr = (s[2] / m - ma * mc) / np.sqrt(va * vc)
+    corr = np.where((m >= 4) & (va > 1e-12) & (vc > 1e-12), corr, np.nan)
+    return var, corr, n
+
+
+def detrended_lag_covariance(spikes: np.ndarray, degree: int = 2) -> tuple[np.ndarray, np.ndarray]:
+    """``(residual variance, lag-1 autocovariance of the residuals)``, each ``[P]`` frames**2, of
+    the :func:`detrended_intervals` residuals ``r``: ``sum r_i r_{i+1} / (pairs)``; NaN below
+    ``degree + 3`` intervals. Unlike the correlation, defined (0) for a pixel whose intervals do
+    not vary, so a regular pixel counts in an average as it is."""
+    g, r, n, ok, P = _detrended_residuals(spikes, degree)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        var = np.bincount(g, weights=r * r, minlength=P) / (n - degree - 1)
+        pair = g[1:] == g[:-1]
+        cov = np.bincount(g[1:][pair], weights=r[:-1][pair] * r[1:][pair], minlength=P) / (n - 1)
+    return np.where(ok, var, np.nan), np.where(ok, cov, np.nan)
+
+
+def _detrended_residuals(spikes: np.ndarray, degree: int):
+    """``(pixel of each interval, its residual, intervals per pixel [P], enough [P], P)`` of
+    :func:`detrended_intervals` (pixel-major order, so a pixel's intervals are consecutive)."""
     P = int(np.prod(spikes.shape[1:]))
     pix, t = stats.spike_times(spikes)
     same = pix[1:] == pix[:-1]
@@ -168,21 +201,7 @@ def detrended_intervals(spikes: np.ndarray, degree: int = 2) -> tuple[np.ndarray
     b[~ok] = 0.0
     coef = np.linalg.solve(A + 1e-12 * np.eye(k), b[..., None])[..., 0]
     fit = sum(coef[g, j] * mid ** j for j in range(k))
-    r = isi - fit
-    with np.errstate(invalid="ignore", divide="ignore"):
-        var = np.bincount(g, weights=r * r, minlength=P) / (n - k)
-    var = np.where(ok, var, np.nan)
-    pair = g[1:] == g[:-1]
-    a, c, gp = r[:-1][pair], r[1:][pair], g[1:][pair]
-    m = np.bincount(gp, minlength=P).astype(np.float64)
-    s = [np.bincount(gp, weights=v, minlength=P) for v in (a, c, a * c, a * a, c * c)]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        ma, mc = s[0] / m, s[1] / m
-        va, vc = s[3] / m - ma * ma, s[4] / m - mc * mc
-        corr = (s[2] / m - ma * mc) / np.sqrt(va * vc)
-    corr = np.where((m >= 4) & (va > 1e-12) & (vc > 1e-12), corr, np.nan)
-    return var, corr, n
-
+    return g, isi - fit, n, ok, P
 
 
 # ---------------------------------------------------------------------- shot noise matched by simulation
@@ -428,3 +447,167 @@ def image_motion(stream, rows: int, frames: int | None = None, windows: int = MO
         changed = ((spread > MOTION_CHANGE * np.maximum(mean, 1e-12)) & (spread > MOTION_NOISE * noise)).reshape(-1)
         return ImageMotion(axes["rows"], axes["cols"], True, changed, still, tuple(coefs), T, mean)
     return ImageMotion(axes["rows"], axes["cols"], False, changed, frames=T)
+
+
+# ---------------------------------------------------------------------- shot noise and threshold jitter, jointly
+TIMING_SEED = 2030  # the ideal reference draws this seed; the simulations TIMING_SEED + 1, + 2, ...
+TIMING_START = (1.0 / 1e4, 0.006 ** 2)  # (1 / N_e, sigma^2) of the two one-effect simulations
+TIMING_STEPS = 2  # simulations at the current estimate, each followed by a Newton step
+TIMING_REPEATS = 3  # streams (consecutive seeds) averaged in each simulation
+
+
+def timing_excess(spikes: np.ndarray, reference: tuple, rate: np.ndarray, mask: np.ndarray):
+    """``(mean [2], covariance of the mean [2, 2], pixels)`` over the pixels of ``mask [P]`` (those
+    with finite values) of ``(v - v_ref, c - c_ref) * rate^2``: the :func:`detrended_lag_covariance`
+    variance ``v`` and lag-1 autocovariance ``c`` of the intervals beyond those of ``reference``
+    (the same pair of a reference stream), in the units of ``1 / N_e``."""
+    v, c = detrended_lag_covariance(spikes, 2)
+    y = np.stack([(v - reference[0]) * rate ** 2, (c - reference[1]) * rate ** 2], -1)
+    m = np.asarray(mask, dtype=bool).reshape(-1) & np.isfinite(y).all(-1)
+    n = int(m.sum())
+    if n < 3:
+        return np.full(2, np.nan), np.full((2, 2), np.inf), n
+    return y[m].mean(0), np.cov(y[m].T) / n, n
+
+
+@dataclass(frozen=True)
+class TimingNoise:
+    """Shot noise and threshold jitter whose simulation has the recordings' detrended interval
+    variance and lag-1 autocovariance (:func:`matched_timing_noise`). ``inverse_electrons``
+    (1 / N_e) and ``jitter_variance`` (sigma^2) with their covariance ``cov [2, 2]``. Per
+    recording (dicts by name): ``measured`` the two statistics (means) with ``measured_cov``,
+    ``simulated`` those of a simulation at the final estimate, ``chi2`` of measured - simulated
+    (its covariance: the recording's plus the simulation's; 2 degrees of freedom each); ``jacobian``
+    the statistics per unit of (1 / N_e, sigma^2) from the one-effect simulations; ``pixels``.
+    ``steps``: the (1 / N_e, sigma^2) simulated before each Newton step."""
+
+    inverse_electrons: float
+    jitter_variance: float
+    cov: np.ndarray
+    measured: dict
+    measured_cov: dict
+    simulated: dict
+    chi2: dict
+    jacobian: dict
+    pixels: dict
+    steps: tuple
+
+    @property
+    def electrons(self) -> float:
+        return 1.0 / self.inverse_electrons if self.inverse_electrons > 0 else float("inf")
+
+    @property
+    def jitter(self) -> float:
+        """sigma (0 where the fitted sigma^2 is not positive)."""
+        return math.sqrt(self.jitter_variance) if self.jitter_variance > 0 else 0.0
+
+    @property
+    def standard_errors(self) -> tuple[float, float]:
+        """Of 1 / N_e and of sigma^2."""
+        return float(math.sqrt(self.cov[0, 0])), float(math.sqrt(self.cov[1, 1]))
+
+    def correlation(self) -> float:
+        """Of the two estimates' errors: near -1 where the data hardly tell the effects apart."""
+        return float(self.cov[0, 1] / math.sqrt(self.cov[0, 0] * self.cov[1, 1]))
+
+
+def matched_timing_noise(recordings: dict, intensity: float = 256.0, seed: int = TIMING_SEED,
+                         start: tuple = TIMING_START, steps: int = TIMING_STEPS,
+                         repeats: int = TIMING_REPEATS) -> TimingNoise:
+    """Shot noise (1 / N_e) and a threshold jitter (sigma^2, the sensor's ``threshold_jitter``)
+    fitted together to one or more recordings ``{name: (spikes [T, H, W], mask [P])}``, over the
+    pixels of each mask, each pixel's slow trend removed: one parameter set for all of them.
+
+    Shot noise makes consecutive intervals vary independently; a jitter of the firing level whose
+    reset subtracts the nominal threshold moves one spike time, which lengthens one interval and
+    shortens the next: it adds variance ``2 sigma^2 / rate^2`` and lag-1 autocovariance
+    ``-sigma^2 / rate^2``. So the pair (variance, autocovariance) of :func:`timing_excess` can tell
+    them apart, where the variance alone (:func:`matched_shot_noise`) cannot; how well depends on
+    the recording (with few intervals a pixel, the trend's removal correlates the residuals of any
+    noise, and the two effects move the pair alike: then ``cov`` is large and :meth:`correlation`
+    near -1). Per recording the radiance is the one at which the ideal sensor fires at each
+    pixel's measured mean rate (as in :func:`matched_shot_noise`), the reference the ideal
+    sensor's simulation of it (``seed``). Every simulation is the mean of ``repeats`` streams of
+    consecutive seeds from ``seed + 1`` on, in the order below. Shot noise only and jitter only
+    (``start``) give each recording's statistics per unit of each (its Jacobian, frame quantisation
+    included); the estimate is the generalised least-squares solution of all recordings' stacked
+    statistics (weights: the inverse of their covariance, the recording's plus the simulation's);
+    then ``steps`` times: simulate the current estimate and move it by the same solution of
+    measured - simulated; last, a simulation at the final estimate gives each recording's chi2."""
+    counter = iter(range(seed + 1, seed + 1 + 10 ** 6))
+    prep = _timing_prep(recordings, intensity, seed)
+
+    def sim(inverse, variance):
+        return _timing_sim(prep, inverse, variance, intensity, repeats, counter)
+
+    names = list(prep)
+    shot, jit = sim(start[0], 0.0), sim(0.0, start[1])
+    J = {k: np.stack([shot[k][0] / start[0], jit[k][0] / start[1]], -1) for k in names}
+    Js = np.concatenate([J[k] for k in names])
+    W = np.zeros((2 * len(names),) * 2)
+    for i, k in enumerate(names):
+        W[2 * i:2 * i + 2, 2 * i:2 * i + 2] = np.linalg.inv(prep[k]["mc"] + shot[k][1])
+    gain = np.linalg.solve(Js.T @ W @ Js, Js.T @ W)  # [2, 2 * recordings]
+    est = gain @ np.concatenate([prep[k]["m"] for k in names])
+    done = []
+    for _ in range(steps):
+        s = sim(*est)
+        done.append(tuple(float(e) for e in est))
+        est = est + gain @ np.concatenate([prep[k]["m"] - s[k][0] for k in names])
+    final = sim(*est)
+    cov = gain @ np.linalg.inv(W) @ gain.T
+    return TimingNoise(float(est[0]), float(est[1]), cov, {k: prep[k]["m"] for k in names},
+                       {k: prep[k]["mc"] for k in names}, {k: final[k][0] for k in names}, _chi2(prep, final), J,
+                       {k: prep[k]["n"] for k in names}, tuple(done))
+
+
+def timing_chi2(recordings: dict, electrons: float, jitter: float, intensity: float = 256.0,
+                seed: int = TIMING_SEED, repeats: int = TIMING_REPEATS) -> dict:
+    """``{name: chi2}`` (2 degrees of freedom each) of the recordings' :func:`timing_excess`
+    statistics against a simulation of shot noise of ``electrons`` (0: none) and a threshold
+    jitter ``jitter``: the check :func:`matched_timing_noise` makes of its own fit, for any model
+    (the same references and seeds)."""
+    prep = _timing_prep(recordings, intensity, seed)
+    inverse = 1.0 / electrons if electrons > 0 else 0.0
+    return _chi2(prep, _timing_sim(prep, inverse, jitter ** 2, intensity, repeats, iter(range(seed + 1, seed + 1 + repeats))))
+
+
+def _timing_prep(recordings: dict, intensity: float, seed: int) -> dict:
+    """Per recording: frames, the radiance of its mean rates, the rates, the ideal reference's
+    statistics (``seed``), its mask, and its measured :func:`timing_excess`."""
+    from ..sensor import Sensor, simulate
+
+    prep = {}
+    for name, (spikes, mask) in recordings.items():
+        T = spikes.shape[0]
+        mean = spikes.mean(axis=0, dtype=np.float64)
+        x = np.minimum(mean, 1.0) * (256.0 / intensity)
+        ref = detrended_lag_covariance(simulate(x, intensity, Sensor(), frames=T, seed=seed), 2)
+        m, mc, n = timing_excess(spikes, ref, mean.reshape(-1), mask)
+        prep[name] = dict(T=T, x=x, rate=mean.reshape(-1), ref=ref, mask=mask, m=m, mc=mc, n=n)
+    return prep
+
+
+def _timing_sim(prep: dict, inverse: float, variance: float, intensity: float, repeats: int, seeds) -> dict:
+    """``{name: (mean statistics, their covariance)}`` of ``repeats`` simulations of each recording
+    (seeds taken from the iterator ``seeds``) with 1 / N_e ``inverse`` and sigma^2 ``variance``."""
+    from ..sensor import Sensor, simulate
+
+    sensor = Sensor(electrons=1.0 / inverse if inverse > 0 else 0.0,
+                    threshold_jitter=math.sqrt(variance) if variance > 0 else 0.0)
+    out = {}
+    for name, p in prep.items():
+        runs = [timing_excess(simulate(p["x"], intensity, sensor, frames=p["T"], seed=next(seeds)),
+                              p["ref"], p["rate"], p["mask"]) for _ in range(repeats)]
+        out[name] = (np.mean([r[0] for r in runs], 0), sum(r[1] for r in runs) / repeats ** 2)
+    return out
+
+
+def _chi2(prep: dict, sims: dict) -> dict:
+    """Per recording: measured - simulated statistics against their covariance (the recording's
+    plus the simulation's)."""
+    out = {}
+    for k, p in prep.items():
+        d = p["m"] - sims[k][0]
+        out[k] = float(d @ np.linalg.solve(p["mc"] + sims[k][1], d))
+    return out
