@@ -667,7 +667,7 @@ NEW_ENVELOPE_SEEDS = (300, 301, 302)
 NEW_ENVELOPE_GRID = {
     "dark_current spread": ("spread", (0.0, 0.1, 0.2, 0.3, 0.5), {"rate": 0.005}),
     "dead_pixels": ("count", (0, 1, 2, 3, 5), {}),
-    "threshold jitter (as shot_noise)": ("sigma", (0.0, 0.011, 0.016, 0.022, 0.032), {}),
+    "threshold_jitter": ("sigma", (0.0, 0.006, 0.008, 0.011, 0.016), {}),
 }
 
 
@@ -680,8 +680,8 @@ def _new_envelope_case(effect: str, value: float, fixed: dict, seed: int):
         effects, name = {"dark_current": {**fixed, "spread": value}}, "dark_current"
     elif effect == "dead_pixels":
         effects, name = ({"dead_pixels": {"count": int(value)}} if value else {}), "dead_pixels"
-    else:  # threshold jitter of relative SD sigma times spikes as shot noise of 1 / sigma^2 electrons
-        effects, name = ({"shot_noise": {"electrons": 1.0 / value ** 2}} if value else {}), "shot_noise"
+    else:  # Sensor(threshold_jitter=sigma)
+        effects, name = ({"threshold_jitter": {"sigma": value}} if value else {}), "threshold_jitter"
     spikes = simulate(x, intensity, synth.make_sensor(effects, 64, 64, rng), frames=1000, seed=seed + 1)
     d = diagnose(spikes, x, intensity)
     eff = d.effect(name)
@@ -692,7 +692,7 @@ def _new_envelope_case(effect: str, value: float, fixed: dict, seed: int):
         named, estimate = eff.detected, eff.parameters.get("count") if eff.detected else None
     else:
         named = eff.detected
-        estimate = eff.parameters.get("threshold_jitter_equivalent") if named else None
+        estimate = eff.parameters.get("sigma") if named else None
     others = sorted(n for n in d.detected if n != name)
     return intensity, bool(named), estimate, others
 
@@ -746,9 +746,9 @@ def new_envelope(md):
            f"Each effect alone at each strength on the same {seeds} seeds ({res['seeds'][0]}-{res['seeds'][-1]}: "
            f"the seed draws the intensity, log-uniform in 32-256, the textured reference and the maps; "
            f"{res['size'][0]} x {res['size'][1]} pixels, {res['size'][2]} frames; fixed: {fixed}). "
-           "Named: `dark_current` detected with a spread > 0; `dead_pixels` detected; threshold jitter of "
-           "relative SD sigma is simulated as shot noise of 1 / sigma^2 electrons (the two give the same "
-           "interval law, so the diagnosis reports one, `shot_noise`, with its `threshold_jitter_equivalent`). "
+           "Named: `dark_current` detected with a spread > 0; `dead_pixels` detected; `threshold_jitter` "
+           "detected (simulated as `Sensor(threshold_jitter=sigma)`: a firing level of relative SD sigma drawn "
+           "anew after each spike, which does not accumulate, unlike shot noise). "
            "Estimate: the median over the seeds that named it. Other effects named: any other effect "
            "reported on some seed (a false name). Measured by `python docs/make_fidelity.py "
            f"--measure-envelope` into `docs/fidelity/{NEW_ENVELOPE_JSON.name}`.", "",

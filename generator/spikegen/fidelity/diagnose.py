@@ -23,8 +23,10 @@ frames and judges it on the rest:
 4. Per-pixel structure of ``e = lambda_measured / lambda_model``: column factors, the
    remaining per-pixel spread (the covariance of two halves of the fit window, so counting
    noise drops out), and hot pixels (additive outliers).
-5. Shot noise: interval variance beyond what the fitted noise-free model produces (both
-   measured and simulated, so flicker, quantisation and scene motion cancel).
+5. Temporal noise: interval variance beyond what the fitted noise-free model produces (both
+   measured and simulated, so flicker, quantisation and scene motion cancel): shot noise, which
+   accumulates over a span of intervals, and a threshold jitter, which does not (the variance
+   of one interval beyond that growth; effects._temporal_effects).
 6. Reset-to-zero: the half-frame offset, and pixels whose intervals never vary.
 
 Every effect gets ``score`` = its estimated size over the weakest size the tools must find
@@ -164,8 +166,8 @@ def _choose(ctx: Context, fit: Fit) -> tuple[list, Sensor, dict]:
     the verdicts (dropped effects undetected, with a note), the extended sensor, and
     ``{"doc": the JSON "heldout" entry, "unexplained": entries, "measures": (the baseline's
     discrepancy measures, the extended sensor's)}``. Each model's simulation is made and
-    scored in bands of rows (bands.model_pass), once: a model simulated before (the shot noise
-    verdict's noise-free model, the kept model) is taken from ``ctx.passes``."""
+    scored in bands of rows (bands.model_pass), once: a model simulated before (the temporal
+    noise verdicts' noise-free model, the kept model) is taken from ``ctx.passes``."""
     found, electrons = gated_effects(ctx, fit)
     gated = [n for n in EFFECTS if found[n].detected]
     cache = {}

@@ -12,16 +12,26 @@ from dataclasses import replace
 
 import numpy as np
 
-from ..sensor import Sensor
+from ..sensor import MAX_JITTER, Sensor
 from . import bands, exact, stats
 from .records import (GATES, MIN_COHERENCE, MIN_SPIKES, Context, Effect, Fit, judge,
                       rate_from_interval, unavailable)
 from .synth import EFFECTS
 
-MODEL_VARIANCE_SHARE = 0.1  # shot noise must add this much to the model's own interval variance
+MODEL_VARIANCE_SHARE = 0.1  # shot noise / jitter must add this much to the model's own interval variance
+# the sampling variance of _jitter_excess over that of one sample variance of independent intervals:
+# 4/3 isi_var - 1/3 span_var (MAX_SPAN = 4) of n intervals of variance v varies by
+# (16/9 * 2 + 1/9 * 88 - 8/9 * 8) v^2 / n = 56/9 v^2 / n (overlapping spans: 2 (4 v)^2 (1 + 2 * 14/16) / n;
+# their covariance with isi_var 2 * 4 v^2 / n), against 2 v^2 / n
+JITTER_WEIGHT = 28.0 / 9.0
+JITTER_ITERATIONS = 3  # estimates of the jitter (each with the quantisation terms of the last one)
 SPREAD_BINS = 8  # bins of the light rate in which gain and dark spread are separated
-JITTER_NOTE = ("interval variance 1 / (N_e lambda^2): a threshold jitter of relative SD 1 / sqrt(N_e) "
-               "(threshold_jitter_equivalent) gives the same timing; reported as shot noise")
+JITTER_NOTE = ("the detected threshold jitter's share of the noisy pixels' interval variance "
+               "(3 sigma^2 / lambda^2) was removed first")
+CLOCK_NOTE = ("the error of the population clock the intervals were measured on does not accumulate either: "
+              "not told from a threshold jitter, none is named")
+CONFUSED_NOTE = ("not told from shot noise with this data: a jitter with the single-interval variance of the "
+                 "shot noise found would reach z = {z:.3g} only; reported as shot noise")
 DEAD_MIN_SPIKES = 5.0  # a pixel is tested for being dead where the model expects this many spikes
 COMMON_Z, COMMON_MIN_SD = 5.0, 0.01  # a shared modulation beyond the model's is removed above these
 COMMON_NOTE = ("a modulation shared by all pixels that the model lacks (relative SD {sd:.3g} in windows of "
@@ -36,8 +46,9 @@ def gated_effects(ctx: Context, fit: Fit) -> tuple[dict, float]:
     found["refractory"], found["reset_to_zero"] = _readout_effects(ctx, fit)
     if found["flicker"].detected:
         found["flicker"] = _check_flicker_against_model(ctx, fit, found)
-    deterministic = build_sensor(ctx, fit, found, electrons=0.0)
-    shot = found["shot_noise"] = _shot_effect(ctx, fit, deterministic)
+    deterministic = build_sensor(ctx, fit, found, electrons=0.0)  # found has no jitter yet: none
+    shot, found["threshold_jitter"] = _temporal_effects(ctx, fit, deterministic)
+    found["shot_noise"] = shot
     electrons = (shot.parameters.get("electrons") or 0.0) if shot.detected else 0.0
     return {n: found[n] for n in EFFECTS}, electrons
 
@@ -337,14 +348,35 @@ def _readout_effects(ctx: Context, fit: Fit) -> tuple[Effect, Effect]:
     return refr, rz
 
 
-def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
-    """Interval variance beyond the noise-free model: ``var(ISI) = 1 / (N_e lambda^2)``. Shot
-    noise is independent from pixel to pixel; when the measured stream has a modulation shared
+def _temporal_effects(ctx: Context, fit: Fit, deterministic: Sensor) -> tuple[Effect, Effect]:
+    """Shot noise and threshold jitter from the interval variance beyond the noise-free model
+    ``deterministic`` (the gated effects but these two), on static pixels that are not hot and
+    have >= 8 intervals, the same estimators for the measured stream and the model's simulation,
+    pixel by pixel (so the frame quantisation of the noise-free intervals cancels on average):
+
+    * shot noise accumulates: ``k`` intervals vary by ``k / (N_e lambda^2)``;
+    * a threshold jitter of SD ``sigma`` that the reset does not carry over does not: one interval
+      and a span of any ``k >= 1`` intervals vary by ``2 sigma^2 / lambda^2``.
+
+    ``1 / N_e``: stats.excess_interval_var (measured minus model) times ``lambda^2``. On regular
+    pixels that is the growth over spans of MAX_SPAN intervals, which holds no jitter; on noisy
+    pixels (``isi_var >= 2``) the differences of consecutive intervals, which count the jitter as
+    ``3 sigma^2 / lambda^2``: :func:`_jitter_share` is subtracted there. ``2 sigma^2``: the single
+    interval's excess minus the excess that accumulates, over the span estimator on every pixel,
+    ``lambda^2 (4/3 (isi_var_m - isi_var_s) - 1/3 (span_var_m - span_var_s))`` for MAX_SPAN = 4 and
+    many intervals (:func:`_jitter_excess` has the finite-sample and quantisation terms): shot
+    noise gives it 0, the jitter ``2 sigma^2``; pixels weighted by the inverse of its sampling
+    variance (JITTER_WEIGHT), standard error from its spread.
+    Both are independent from pixel to pixel; when the measured stream has a modulation shared
     by its pixels beyond the model's (:func:`_common_mode`), both streams' intervals are measured
-    on their own population's clock (stats.population_clock), which removes it, first."""
+    on their own population's clock (stats.population_clock), which removes it, first; then no
+    jitter is named (the clock's own error does not accumulate either: CLOCK_NOTE). The jitter
+    is gated (records.GATES) and, like shot noise, not named below MODEL_VARIANCE_SHARE of the
+    model's own interval variance; its share of the noisy pixels' estimate is removed from the
+    shot noise only where it passed."""
     mask = _common_mask(ctx, fit)
-    # `deterministic` is the model of the gated effects but shot noise, which the held-out choice
-    # always scores (diagnose._choose): its score comes from this simulation too (ctx.passes)
+    # `deterministic` is the model of the gated effects but the temporal noise, which the held-out
+    # choice always scores (diagnose._choose): its score comes from this simulation too (ctx.passes)
     sim = bands.fit_window_pass(ctx, deterministic, ctx.rows, mask=mask, score=True, timing="variances")
     common = _common_mode(ctx, mask, sim["quadrants"])
     meas, ps = ctx.meas, sim["stats"]
@@ -355,27 +387,116 @@ def _shot_effect(ctx: Context, fit: Fit, deterministic: Sensor) -> Effect:
     noisy = meas.isi_var >= 2.0  # the same estimator for both streams, pixel by pixel
     vm, vs = stats.excess_interval_var(meas, noisy), stats.excess_interval_var(ps, noisy)
     lam = rate_from_interval(ctx.meas.isi_mean, deterministic.refractory_frames)
-    ok = np.isfinite(vm) & np.isfinite(vs) & np.isfinite(lam) & (lam > 0) & (ctx.meas.n_isi >= 8)
-    ok &= ~fit.structure.hot & ctx.static
+    ok = np.isfinite(vm) & np.isfinite(vs) & np.isfinite(meas.span_var) & np.isfinite(ps.span_var)
+    ok &= np.isfinite(lam) & (lam > 0)
+    ok &= (ctx.meas.n_isi >= 8) & ~fit.structure.hot & ctx.static
     shared = {k: v for k, v in common.items() if k != "mask"}
     if ok.sum() < 20:
-        return unavailable("shot_noise", {"electrons": None}, "too few pixels with enough intervals")
-    inv, se, model_level = _inverse_electrons(vm[ok] - vs[ok], vs[ok], lam[ok], ctx.meas.n_isi[ok])
+        why = "too few pixels with enough intervals"
+        return (unavailable("shot_noise", {"electrons": None}, why),
+                unavailable("threshold_jitter", {"sigma": None}, why))
+    lam, n_isi, noisy = lam[ok], ctx.meas.n_isi[ok], noisy[ok]
+    raw, _, model_level = _inverse_electrons(vm[ok] - vs[ok], vs[ok], lam, n_isi)
+    raw = max(raw, 0.0)  # (the level of the other noise in the jitter's weights)
+    # the model's own spread in the jitter's weights: its quantisation at its average (1/6 of a frame^2;
+    # a pixel's own, which is small where its mean interval is near whole frames, goes with the
+    # error of the quantisation terms and would bias the weighted mean), plus any variance beyond
+    # quantisation (at most 1/4) that its modulation (flicker) gives
+    spread = 1.0 / 6.0 + np.maximum(ps.isi_var[ok] - 0.25, 0.0)
+    two_s2 = 0.0
+    for _ in range(JITTER_ITERATIONS):  # the quantisation terms need the levels: from the last estimate
+        J = _jitter_excess(meas, ps, ctx.meas.isi_mean, raw, two_s2)[ok]
+        two_s2, two_se, _ = _inverse_electrons(J, spread, lam, n_isi, JITTER_WEIGHT, other=raw)
+    s2 = two_s2 / 2.0
+    sigma = math.sqrt(s2) if s2 > 0 else None
+    jitter = judge("threshold_jitter", sigma, two_s2 / max(two_se, 1e-15), {"sigma": sigma},
+                   evidence={"two_sigma_squared": two_s2, "standard_error": two_se, "model_level": model_level})
+    # flicker (or motion) the model reproduces makes intervals vary like 1 / lambda^2 too; an excess
+    # below 10 % of that deterministic variance (beyond quantisation: stats.excess_interval_var of
+    # the model's stream, on the shot noise's weights) is within the error of the fitted modulation
+    why = "interval variance within the error of the fitted deterministic modulation (flicker)"
+    if jitter.detected and two_s2 < MODEL_VARIANCE_SHARE * model_level:
+        jitter = replace(jitter, detected=False, note=why)
+    if common["removed"]:  # the population clock's own error is a timing error that does not accumulate
+        jitter = replace(jitter, detected=False, note="; ".join(filter(None, [
+            jitter.note, COMMON_NOTE.format(sd=math.sqrt(common["excess"])), CLOCK_NOTE])))
+    # the shot noise estimate without the jitter's share on the noisy pixels (of a jitter that
+    # passed its gates; an undetected one is taken as none)
+    share = _jitter_share(s2 if jitter.detected else 0.0, lam, noisy)
+    inv, se, model_level = _inverse_electrons(vm[ok] - vs[ok] - share, vs[ok], lam, n_isi)
     electrons = 1.0 / inv if inv > 0 else None
-    jitter = math.sqrt(inv) if inv > 0 else None
-    note = JITTER_NOTE if electrons else ""
+    note = JITTER_NOTE if (electrons and jitter.detected and noisy.any()) else ""
     if common["removed"]:
         note = "; ".join(filter(None, [note, COMMON_NOTE.format(sd=math.sqrt(common["excess"]))]))
-    eff = judge("shot_noise", electrons, inv / max(se, 1e-15),
-                {"electrons": electrons, "threshold_jitter_equivalent": jitter}, note,
-                evidence={"inverse_electrons": inv, "standard_error": se, "model_level": model_level,
-                          "common_mode": shared})
-    # flicker (or motion) the model reproduces makes intervals vary like 1 / lambda^2 too; an
-    # excess below 10 % of that deterministic variance is within the error of the fitted modulation
-    if eff.detected and inv < MODEL_VARIANCE_SHARE * model_level:
-        return replace(eff, detected=False,
-                       note="interval variance within the error of the fitted deterministic modulation (flicker)")
-    return eff
+    shot = judge("shot_noise", electrons, inv / max(se, 1e-15), {"electrons": electrons}, note,
+                 evidence={"inverse_electrons": inv, "standard_error": se, "model_level": model_level,
+                           "common_mode": shared, "jitter_share": float(np.mean(share * lam ** 2))})
+    if shot.detected and inv < MODEL_VARIANCE_SHARE * model_level:
+        shot = replace(shot, detected=False, note=why)
+    if shot.detected and not jitter.detected and inv / max(two_se, 1e-15) < GATES["threshold_jitter"][1]:
+        jitter = replace(jitter, note="; ".join(filter(None, [jitter.note, CONFUSED_NOTE.format(z=inv / max(two_se, 1e-15))])))
+    return shot, jitter
+
+
+def _jitter_excess(pm: stats.PixelStats, ps: stats.PixelStats, mean_isi, inv: float, two_s2: float) -> np.ndarray:
+    """``[P]`` frames**2: the non-accumulating interval variance ``J = 2 sigma^2 / lambda^2`` of each
+    pixel, from the measured (``pm``) minus the model's (``ps``) variance of one interval (``dI``)
+    and of a span of M = MAX_SPAN intervals (``dS``). Shot noise of variance ``v`` per interval and
+    the jitter give, in expectation over a train of ``n`` intervals (``m = n - M + 1`` spans)::
+
+        dI = v + J (1 + 1/n) + c1,    dS = M v (1 - (M - 1)/m) + J (1 + 1/m) + cM
+
+    (sample variances: overlapping spans of independent intervals are correlated, those of a
+    jitter's intervals and spans anti-correlated at lags 1 and M, each by -1/2). ``c``: what the
+    noise does to the frame quantisation. A spike's phase in its frame is uniform and independent
+    of the interval ``D`` that follows, so the whole-frame interval varies by ``var(D) + E g(D)``,
+    ``g(x) = frac(x)(1 - frac(x)) = 1/6 - sum_k cos(2 pi k x) / (pi k)^2``, and the noise-free
+    model's by ``g(mean)``: ``c = sum_k cos(2 pi k mean)(1 - exp(-2 (pi k)^2 var(D))) / (pi k)^2``
+    (:func:`_quantisation_change`), with ``var(D)`` from the current levels ``inv = 1 / N_e`` and
+    ``two_s2 = 2 sigma^2`` over ``lambda^2`` at ``mean = mean_isi`` (``M mean_isi`` for spans).
+    Solved for ``J`` pixel by pixel (NaN where unknown)."""
+    M = stats.MAX_SPAN
+    n = pm.n_isi.astype(np.float64)
+    m = np.maximum(n - M + 1, 1.0)
+    lam2 = 1.0 / np.maximum(mean_isi, 1.0) ** 2
+    inv, two_s2 = max(inv, 0.0), max(two_s2, 0.0)
+    dI = pm.isi_var - ps.isi_var - _quantisation_change(mean_isi, (inv + two_s2) * lam2)
+    dS = pm.span_var - ps.span_var - _quantisation_change(M * mean_isi, (M * inv + two_s2) * lam2)
+    with np.errstate(all="ignore"):  # (NaN or inf where a pixel has no intervals: not used)
+        a12, a21, a22 = 1.0 + 1.0 / n, M * (1.0 - (M - 1) / m), 1.0 + 1.0 / m
+        return (dS - a21 * dI) / (a22 - a21 * a12)
+
+
+QUANTISATION_TERMS = 256  # terms of the Fourier series of _quantisation_change
+
+
+def _quantisation_change(mean, var) -> np.ndarray:
+    """The change of the variance that rounding to whole frames adds to an interval of ``mean``
+    frames when the interval varies by ``var`` frames**2 (Gaussian) instead of not at all:
+    ``E g(D) - g(mean)``, ``g(x) = frac(x)(1 - frac(x))`` (:func:`_jitter_excess`), by its
+    Fourier series (:data:`QUANTISATION_TERMS` terms ``K``: off by less than ``1 / (pi^2 K)``, most
+    where ``mean`` is a whole number of frames and ``var`` small; 0 where either is not finite)."""
+    mean = np.asarray(mean, dtype=np.float64)
+    var = np.broadcast_to(np.asarray(var, dtype=np.float64), mean.shape)
+    ok = np.isfinite(mean) & np.isfinite(var)
+    out = np.zeros(mean.shape)
+    k = np.arange(1, QUANTISATION_TERMS + 1, dtype=np.float64)
+    w = 1.0 / (np.pi * k) ** 2
+    idx = np.flatnonzero(ok)
+    for lo in range(0, idx.size, 4096):  # blocks of pixels: [pixels, terms] at a time
+        i = idx[lo: lo + 4096]
+        phase = np.cos(2 * np.pi * np.outer(np.mod(mean.reshape(-1)[i], 1.0), k))
+        damp = -np.expm1(-2.0 * np.outer(var.reshape(-1)[i], (np.pi * k) ** 2))
+        out.reshape(-1)[i] = (phase * damp) @ w
+    return out
+
+
+def _jitter_share(s2: float, lam: np.ndarray, noisy: np.ndarray) -> np.ndarray:
+    """``[n]`` frames**2: what a threshold jitter of variance ``s2`` adds to
+    stats.excess_interval_var: on noisy pixels the differences of consecutive intervals
+    ``(eps_(k+1) - 2 eps_k + eps_(k-1)) / lambda`` vary by ``6 s2 / lambda^2``, half of which is
+    read as interval variance (``3 s2 / lambda^2``); on regular pixels the span growth holds none."""
+    return np.where(noisy, 3.0 * max(s2, 0.0) / lam ** 2, 0.0)
 
 
 def _common_mask(ctx: Context, fit: Fit) -> np.ndarray:
@@ -400,15 +521,20 @@ def _common_mode(ctx: Context, mask: np.ndarray, sim_quadrants: np.ndarray) -> d
     return {"excess": excess, "standard_error": se, "z": z, "removed": removed, "mask": mask}
 
 
-def _inverse_electrons(excess_var, model_var, lam, n_isi):
-    """Weighted mean of ``(measured - model) interval variance x lambda^2`` (estimates
-    ``1 / N_e`` per pixel), its empirical standard error, and the model's own variance on the
-    same scale; each argument ``[n]`` over the usable pixels."""
+def _inverse_electrons(excess_var, model_var, lam, n_isi, factor: float = 1.0, other: float = 0.0):
+    """Weighted mean of ``(measured - model) interval variance x lambda^2`` (a level the same
+    for every pixel: ``1 / N_e`` from stats.excess_interval_var; ``2 sigma^2`` from
+    :func:`_jitter_excess`), its empirical standard error, and the model's own variance on the
+    same scale; each argument ``[n]`` over the usable pixels. The weights are the inverse of a
+    pixel's sampling variance: ``factor`` times that of the sample variance of its ``n_isi``
+    intervals (JITTER_WEIGHT for the jitter's combination of two sample variances), plus a
+    quantisation residue; the variance in them is the estimate itself (iterated) plus ``other``
+    (the level of the pixels' other temporal noise) over ``lambda^2``."""
     y = excess_var * lam ** 2
     inv = 1e-3
     for _ in range(3):  # inverse-variance weights: sampling variance + quantisation residue
-        v = max(inv, 0.0) / lam ** 2 + np.abs(model_var)  # the model's own spread counts too
-        var_y = lam ** 4 * (2 * v ** 2 / (n_isi - 1) + 0.02 / n_isi)
+        v = (max(inv, 0.0) + other) / lam ** 2 + np.abs(model_var)  # the model's own spread counts too
+        var_y = lam ** 4 * (factor * 2 * v ** 2 / (n_isi - 1) + 0.02 / n_isi)
         wts = 1.0 / var_y
         inv = float(np.sum(wts * y) / np.sum(wts))
     # empirical standard error: deterministic interval modulation (flicker, motion) that the
@@ -511,7 +637,8 @@ def _dark_rate(ctx: Context, fit: Fit, found: dict, on: dict, R: np.ndarray) -> 
 
 
 def _scalar_parameters(fit: Fit, found: dict, on: dict) -> dict:
-    """Sensor keywords of the detected effects that are single numbers."""
+    """Sensor keywords of the detected effects that are single numbers (a threshold jitter at
+    most the sensor's MAX_JITTER)."""
     kw = {}
     if on.get("flicker"):
         params = found["flicker"].parameters
@@ -524,4 +651,6 @@ def _scalar_parameters(fit: Fit, found: dict, on: dict) -> dict:
         kw["refractory_frames"] = int(found["refractory"].parameters["frames"])
     if on.get("reset_to_zero"):
         kw["reset"] = "zero"
+    if on.get("threshold_jitter"):
+        kw["threshold_jitter"] = min(float(found["threshold_jitter"].parameters["sigma"]), MAX_JITTER)
     return kw

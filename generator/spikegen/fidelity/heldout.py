@@ -60,7 +60,7 @@ MEASURE = ("Gaussian log-likelihood of the held-out per-pixel intervals and spik
 # scalar parameters each effect adds to the model (the penalty, nats, of keeping it)
 PARAMETERS = {"gain_nonuniformity": 1, "column_pattern": 1, "dark_current": 2, "hot_pixels": 1, "shot_noise": 1,
               "reset_to_zero": 1, "refractory": 1, "flicker": 3, "crosstalk": 1, "nonlinearity": 1,
-              "dead_pixels": 1}
+              "dead_pixels": 1, "threshold_jitter": 1}
 
 
 @dataclass(frozen=True, eq=False)

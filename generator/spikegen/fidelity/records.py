@@ -27,7 +27,7 @@ MIN_COHERENCE = 0.9  # flicker: agreement of the sinusoid across four pixel grou
 # z gate of each effect (its statistical significance must reach this)
 Z_GATES = {"gain_nonuniformity": 6.0, "column_pattern": 5.0, "dark_current": 6.0, "hot_pixels": 0.0,
            "shot_noise": 6.0, "reset_to_zero": 0.0, "refractory": 0.0, "flicker": 8.0, "crosstalk": 6.0,
-           "nonlinearity": 6.0, "dead_pixels": 0.0}
+           "nonlinearity": 6.0, "dead_pixels": 0.0, "threshold_jitter": 6.0}
 # the weakest size the tools must find (synth.ENVELOPE): an effect's score is its size over this
 ENVELOPE_SIZE = {name: envelope_size(name) for name in EFFECTS}
 

@@ -16,7 +16,7 @@ import numpy as np
 from ..sensor import Sensor
 
 EFFECTS = ("gain_nonuniformity", "column_pattern", "dark_current", "hot_pixels", "shot_noise", "reset_to_zero",
-           "refractory", "flicker", "crosstalk", "nonlinearity", "dead_pixels")
+           "refractory", "flicker", "crosstalk", "nonlinearity", "dead_pixels", "threshold_jitter")
 
 # The detectability envelope (the numbers): the weakest effect the tools must find in a
 # recording of >= 1000 frames, >= 64 x 64 pixels, intensity 32..256, radiance spanning 0.05..1.
@@ -32,11 +32,13 @@ ENVELOPE = {
     "crosstalk": {"fraction": 0.05},
     "nonlinearity": {"gamma_offset": 0.1},
     "dead_pixels": {"count": 5},
+    "threshold_jitter": {"sigma": 0.008},
 }
 # The entry of ENVELOPE that is each effect's size (None: an on/off effect, size 1).
 SIZE_KEY = {"gain_nonuniformity": "sigma", "column_pattern": "sigma", "dark_current": "rate", "hot_pixels": "count",
             "shot_noise": "electrons", "reset_to_zero": None, "refractory": "frames", "flicker": "depth",
-            "crosstalk": "fraction", "nonlinearity": "gamma_offset", "dead_pixels": "count"}
+            "crosstalk": "fraction", "nonlinearity": "gamma_offset", "dead_pixels": "count",
+            "threshold_jitter": "sigma"}
 
 
 def envelope_size(name: str) -> float:
@@ -58,12 +60,15 @@ RANGES = {
     "crosstalk": {"fraction": (0.05, 0.3)},
     "nonlinearity": {"gamma": (0.6, 1.5)},
     "dead_pixels": {"count": (5, 30)},
+    "threshold_jitter": {"sigma": (0.008, 0.05)},
 }
 HOT_RATE = (0.05, 0.3)
 
 # Pairs the diagnosis is known to confuse (docs/fidelity.md, "Known limits"): a reset to zero
-# under shot noise of ~10^3 electrons looks like a mixture of several mean-rate effects.
-KNOWN_CONFUSIONS = {frozenset(("reset_to_zero", "shot_noise"))}
+# under shot noise of ~10^3 electrons looks like a mixture of several mean-rate effects; a
+# threshold jitter under a reset to zero accumulates (the charge starts from 0 after each spike,
+# so each interval is (1 + eps_k) / lambda, independent of the last): it is read as shot noise.
+KNOWN_CONFUSIONS = {frozenset(("reset_to_zero", "shot_noise")), frozenset(("reset_to_zero", "threshold_jitter"))}
 
 
 def draw_pair(rng: np.random.Generator) -> list:
@@ -150,6 +155,8 @@ def make_sensor(effects: dict, height: int, width: int, rng: np.random.Generator
         kw["crosstalk_fraction"] = effects["crosstalk"]["fraction"]
     if "nonlinearity" in effects:
         kw["gamma"] = effects["nonlinearity"]["gamma"]
+    if "threshold_jitter" in effects:
+        kw["threshold_jitter"] = effects["threshold_jitter"]["sigma"]
     return Sensor(name="hidden", **kw)
 
 
