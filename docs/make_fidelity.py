@@ -75,29 +75,17 @@ CHECK_SEED = 77  # the synthetic recordings of the estimator check
 CHECK_ELECTRONS = (1e4, 3e4)  # pure shot noise of the check, besides the fitted values
 
 
-def jittered_stream(rate, frames, electrons, jitter, seed):
-    """``uint8 [frames, H, W]``: integrate-and-fire at ``rate [H, W]`` spikes per frame (at most
-    one spike a frame) with shot noise of ``electrons`` (Poisson electrons each frame) and a
-    threshold that varies from spike to spike: the k-th spike fires when the charge reaches
-    ``1 + eps_k``, ``eps_k ~ N(0, jitter^2)`` drawn anew after each spike, and the reset subtracts
-    the nominal threshold 1, so the next spike's time does not carry this one's jitter (its
-    intervals are anti-correlated; shot noise and a jitter of the threshold that the reset
-    subtracts accumulate). Not a model of the sensor contract: a check of the estimators."""
-    rng = np.random.default_rng(seed)
-    lam = np.asarray(rate, dtype=np.float64).reshape(-1)
-    charge = rng.uniform(0.0, 1.0, lam.size)
-    eps = rng.normal(0.0, jitter, lam.size)
-    out = np.zeros((frames, lam.size), dtype=np.uint8)
-    for t in range(frames):
-        charge += rng.poisson(lam * electrons) / electrons
-        fire = charge >= 1.0 + eps
-        out[t] = fire
-        charge[fire] -= 1.0
-        eps[fire] = rng.normal(0.0, jitter, int(fire.sum()))
-    return out.reshape(frames, *np.shape(rate))
-
-
 MIN_INTERVALS = 8  # a pixel's intervals for its variance to be averaged (drift.matched_shot_noise)
+
+
+def preset_sensor(results, name="calibrated noise"):
+    """The ideal sensor plus the temporal noise fitted to both recordings (estimate_electrons)."""
+    e = results["electrons"]
+    return Sensor(name=name, electrons=float(e) if math.isfinite(e) else 0.0, threshold_jitter=results["jitter"])
+
+
+def preset_label(results) -> str:
+    return f"N_e = {results['electrons']:.3g}, threshold jitter SD {results['jitter']:.2g}"
 
 
 def _static_mask(spikes):
@@ -109,9 +97,12 @@ def _static_mask(spikes):
 
 
 def estimate_electrons(real, results):
-    """The preset's N_e: drift.matched_shot_noise (all of the interval variance, each pixel's trend
+    """The preset's temporal noise: drift.matched_timing_noise (shot noise and threshold jitter
+    together, from the variance and lag-1 autocovariance of the intervals, each pixel's trend
     removed, matched by simulation) on the car's static background and on the low-light pixels
-    that its image's motion hardly changes; the inverse-variance weighted mean of the two 1 / N_e."""
+    that its image's motion hardly changes, one parameter set for both; beside it
+    drift.matched_shot_noise (shot noise alone, from the variance) on the same pixels, the
+    inverse-variance weighted mean of the two 1 / N_e."""
     from spikegen.fidelity import drift
 
     car = read_spikes(real / "car_500frames_250x400.npz")
@@ -125,10 +116,21 @@ def estimate_electrons(real, results):
     inv = sum(w[k] * f.inverse for k, f in fits.items()) / sum(w.values())
     inv_se = 1.0 / math.sqrt(sum(w.values()))
     results["matched"] = fits
-    results["electrons_se"] = inv_se / inv ** 2
+    results["matched_se"] = inv_se / inv ** 2
     if not inv > 0:
         sys.exit("make_fidelity: neither recording has interval variance beyond the ideal sensor's")
-    results["electrons"] = 1.0 / inv
+    results["matched_electrons"] = 1.0 / inv
+    # the preset: shot noise and threshold jitter fitted together to both recordings (the
+    # intervals' variance and lag-1 autocovariance), and the shot-noise-only fit checked alike
+    recordings = {"car": (car, _static_mask(car).reshape(-1)), "low light": (low, low_mask.reshape(-1))}
+    timing = drift.matched_timing_noise(recordings)
+    results["timing"] = timing
+    results["timing_shot_chi2"] = drift.timing_chi2(recordings, 1.0 / inv, 0.0)
+    if not timing.inverse_electrons > 0:
+        sys.exit("make_fidelity: the joint fit of shot noise and threshold jitter gives no shot noise")
+    results["electrons"] = timing.electrons
+    results["electrons_se"] = timing.standard_errors[0] / timing.inverse_electrons ** 2
+    results["jitter"] = timing.jitter
     results["car_rate"] = np.minimum(car.mean(0), 1.0)
     results["car_frames"] = car.shape[0]
 
@@ -139,7 +141,7 @@ def study_electrons(md, results, written):
     from spikegen.fidelity import drift
     from spikegen.fidelity.diagnose import score_sensor
 
-    fits, e, e_se = results["matched"], results["electrons"], results["electrons_se"]
+    fits, e, e_se = results["matched"], results["matched_electrons"], results["matched_se"]
     diag = {"car": results["car_diagnosis"].effect("shot_noise"),
             "low light": results["lowlight_diagnosis"].effect("shot_noise")}
     rows = []
@@ -161,14 +163,21 @@ def study_electrons(md, results, written):
     if jitter > 0 and math.isfinite(e_diag):
         cases.append((f"shot noise N_e = {_ne(e_diag)} + threshold jitter SD {jitter:.2g}, not accumulating",
                       e_diag, jitter))
+    fitted_case = (f"the joint fit: {preset_label(results)}", results["electrons"], results["jitter"])
+    cases.append(fitted_case)
     check, errors = [], []
     for label, n, jit in cases:
-        s = (jittered_stream(x, T, n, jit, CHECK_SEED) if jit > 0
-             else simulate(x, 256.0, Sensor(electrons=n), frames=T, seed=CHECK_SEED))
+        s = simulate(x, 256.0, Sensor(electrons=n, threshold_jitter=jit), frames=T, seed=CHECK_SEED)
         m = drift.matched_shot_noise(s, _static_mask(s))
-        d = diagnose(s, "self", 256.0).effect("shot_noise")
+        verdict = diagnose(s, "self", 256.0)
+        d, dj = verdict.effect("shot_noise"), verdict.effect("threshold_jitter")
         de = d.parameters.get("electrons")
-        check.append((label, f"{_ne(m.electrons)} +- {m.standard_error:.2g}", f"{_fmt(de)} (z = {d.z:.3g})"))
+        check.append((label, f"{_ne(m.electrons)} +- {m.standard_error:.2g}", f"{_fmt(de)} (z = {d.z:.3g})",
+                      f"{_fmt(dj.parameters.get('sigma'))} (z = {dj.z:.3g}{', named' if dj.detected else ''})"))
+        if (label, n, jit) == fitted_case:  # the joint fit on a recording with exactly that noise
+            own = drift.matched_timing_noise({"seeded": (s, _static_mask(s).reshape(-1))})
+            fitted_check = (own.electrons, own.jitter, dj)
+            continue
         if jit == 0:
             errors += [abs(m.electrons / n - 1), abs((de or math.inf) / n - 1)]
             if n == e:  # the held-out score of the true shot noise against none
@@ -178,19 +187,56 @@ def study_electrons(md, results, written):
             jittered = (m.electrons, de)
     car_m, car_d = fits["car"].electrons, diag["car"].parameters.get("electrons")
     scores = results["joint"]["scores"]
-    gain = {label: scores[label][e] - scores[label][math.inf] for label in scores}
+    gain = {label: results["joint"]["fitted"][label] - scores[label][math.inf] for label in scores}
     spread = {label: max(v for n, v in sc.items() if n >= 1e4) - min(v for n, v in sc.items() if n >= 1e4)
               for label, sc in scores.items()}
-    held = (f"Held-out score (\"One temporal-noise parameter for both recordings?\" above) under N_e = {_ne(e)} "
-            "against the ideal sensor: " + ", ".join(f"{k} {v:+.3g}" for k, v in gain.items()) + " nats per pixel; "
+    held = (f"Held-out score (\"One temporal-noise parameter for both recordings?\" above) under the fitted "
+            f"{preset_label(results)} against the ideal sensor: " + ", ".join(f"{k} {v:+.3g}" for k, v in gain.items()) + " nats per pixel; "
             "over the grid's N_e from 1e4 to none the scores move by at most "
             + ", ".join(f"{v:.3g} ({k})" for k, v in spread.items()) + " nats per pixel. "
             + f"On the seeded recording above with shot noise of exactly N_e = {_ne(e)}, the held-out score of "
             f"the true N_e against none is {truth_gain:+.3g} nats per pixel"
             + (": at these N_e the score does not tell shot noise from none (it scores the truth lower), so the "
-               "preset's N_e rests on the interval variance measured here, not on the held-out score."
+               "preset's noise rests on the interval statistics measured here, not on the held-out score."
                if truth_gain <= 0 else "."))
-    md += ["## Shot noise measured alike on both recordings (the preset's N_e)", "",
+    timing, shot_chi2 = results["timing"], results["timing_shot_chi2"]
+    t_se = timing.standard_errors
+    t_rows = [(label, timing.pixels[label],
+               f"{timing.measured[label][0]:.3g} / {timing.measured[label][1]:.3g}",
+               f"{math.sqrt(timing.measured_cov[label][0, 0]):.2g} / {math.sqrt(timing.measured_cov[label][1, 1]):.2g}",
+               f"{timing.simulated[label][0]:.3g} / {timing.simulated[label][1]:.3g}",
+               f"{timing.chi2[label]:.3g}", f"{shot_chi2[label]:.3g}") for label in timing.measured]
+    md += ["## Shot noise and threshold jitter, measured alike on both recordings (the preset's noise)", "",
+           "`spikegen.fidelity.drift.matched_timing_noise`: per pixel, the variance and the lag-1 autocovariance of "
+           "its intervals about a quadratic in time (`drift.detrended_lag_covariance`), less those of the ideal "
+           f"sensor at the same mean rates (seed {drift.TIMING_SEED}), times rate^2, averaged over the pixels "
+           "(`drift.timing_excess`). Shot noise makes consecutive intervals vary independently; a threshold "
+           "jitter (the sensor's `threshold_jitter`: the firing level varies from spike to spike, the reset "
+           "subtracts the nominal threshold) moves one spike time, lengthening one interval and shortening the "
+           "next, so it adds variance and a negative lag-1 autocovariance. Simulations of shot noise alone and of "
+           "jitter alone give each recording's statistics per unit of each; the estimate is the generalised "
+           "least-squares fit of both recordings' four statistics by the two parameters, then "
+           f"{drift.TIMING_STEPS} Newton steps on simulations at the estimate (each the mean of "
+           f"{drift.TIMING_REPEATS} seeds, from {drift.TIMING_SEED + 1} on); last, a simulation at the final "
+           "estimate gives each recording's chi-square (2 degrees of freedom each). Same pixels as below.", "",
+           table(t_rows, ["recording", "pixels", "measured variance / lag-1 autocovariance (x rate^2)", "SE",
+                          "simulated at the joint fit", "chi2, joint fit", f"chi2, shot noise alone N_e = {_ne(e)}"]),
+           "",
+           f"**One parameter set for both recordings: N_e = {_ne(timing.electrons)} (1/N_e = "
+           f"{timing.inverse_electrons:.3g} +- {t_se[0]:.2g}) and threshold jitter SD {timing.jitter:.3g} "
+           f"(sigma^2 = {timing.jitter_variance:.3g} +- {t_se[1]:.2g}); the two estimates' errors correlate "
+           f"by {timing.correlation():.2f}.** Against each recording's statistics it scores chi2 = "
+           + ", ".join(f"{timing.chi2[k]:.3g} ({k})" for k in timing.chi2)
+           + "; shot noise alone at the N_e of all of the interval variance (the table below) scores "
+           + ", ".join(f"{shot_chi2[k]:.3g} ({k})" for k in shot_chi2)
+           + ": the lag-1 autocovariance rejects shot noise alone. Per recording, the Jacobians (statistics per "
+           "unit of 1/N_e and of sigma^2) say how well the recording tells the two apart: "
+           + "; ".join(f"{k}: shot noise ({J[0, 0]:.3g}, {J[1, 0]:.3g}), jitter ({J[0, 1]:.3g}, {J[1, 1]:.3g})"
+                       for k, J in timing.jacobian.items())
+           + ". Where the two columns point the same way (the low light: with few intervals a pixel, removing "
+           "its trend makes the residuals of any noise anticorrelated), that recording alone cannot tell "
+           "shot noise from jitter; the car can, and the joint fit rests on it.", ""]
+    md += ["## Shot noise alone, measured alike on both recordings", "",
            "`spikegen.fidelity.drift.matched_shot_noise`: per pixel, the variance of its intervals about a "
            "quadratic in time (a slow change of its rate, as the low-light image's motion makes, is left out), "
            f"less that of the ideal sensor at the same mean rates (seed {drift.MATCH_SEED}), times rate^2, averaged "
@@ -207,23 +253,35 @@ def study_electrons(md, results, written):
            table(rows, ["recording", "pixels", "measured 1/N_e equivalent +- SE", "electrons simulated",
                         "N_e +- SE", f"z against {_ne(e)}", "diagnose's N_e"]), "",
            f"One N_e for both: the inverse-variance weighted mean of the two 1 / N_e, N_e = {_ne(e)} +- "
-           f"{e_se:.2g}" + ("; the `calibrated` preset holds it (section 6)." if written else
-                            "; `--no-preset`: the `calibrated` preset is not refitted (section 6)."), "",
+           f"{e_se:.2g}: all of the interval variance read as shot noise (the preset until the threshold jitter "
+           "was modelled). The `calibrated` preset now holds the joint fit above"
+           + (" (section 6)." if written else "; `--no-preset`: the preset is not refitted (section 6)."), "",
            f"Why the car reads {_ne(car_m)} here and {_fmt(car_d)} in `spikegen diagnose`: seeded recordings at "
            f"the car's mean rates ({T} frames, seed {CHECK_SEED}) with a known noise, through both estimators:", "",
-           table(check, ["recording", "matched N_e +- SE (this section)", "diagnose's N_e"]), "",
+           table(check, ["recording", "matched N_e +- SE (this section)", "diagnose's N_e",
+                         "diagnose's threshold_jitter sigma"]), "",
+           f"On the seeded recording with the joint fit's noise ({preset_label(results)}), the joint fit of the "
+           f"section above reads N_e = {_ne(fitted_check[0])} and SD {fitted_check[1]:.3g}; `spikegen diagnose` "
+           f"reads a threshold jitter of SD {_fmt(fitted_check[2].parameters.get('sigma'))} (z = "
+           f"{fitted_check[2].z:.3g}), "
+           + ("and names it." if fitted_check[2].detected else
+              f"and does not name it (its gates: {fitted_check[2].evidence.get('size_gate')} in size, z "
+              f"{fitted_check[2].evidence.get('z_gate')}; on 500 frames at these rates its estimate, from the "
+              "non-accumulating share of the variance of single intervals and spans of 4, is below the jitter "
+              "the recording holds). So `spikegen diagnose` does not name the car's jitter, and the preset's "
+              "comes from the joint fit."), "",
            f"On shot noise alone both estimators read the true N_e within {100 * max(errors):.0f} %. A noise that "
            "does not accumulate from spike to spike (a threshold that varies from spike to spike while the "
-           "reset subtracts the nominal one: `jittered_stream` in docs/make_fidelity.py) is all in the variance "
+           "reset subtracts the nominal one: the sensor's `threshold_jitter`) is all in the variance "
            "of single intervals, which this section measures, and none of it in the growth of the variance over "
            "a span of intervals, which the diagnosis measures on the car's regular pixels. Shot noise at the "
            f"diagnosis' N_e plus such a jitter of relative SD {jitter:.2g} (from the gap between the car's two "
            "readings: 1/N_e here - 1/N_e of the diagnosis = 2 SD^2) reads "
            + (f"{_ne(jittered[0])} here and {_fmt(jittered[1])} in the diagnosis, against the car's {_ne(car_m)} "
               f"and {_fmt(car_d)}. " if jitter > 0 else "- (no gap). ")
-           + "The sensor model has no such jitter, so shot noise alone cannot give the car both its "
-           "single-interval variance and that growth; the preset takes the N_e of all of the interval variance, "
-           "the measure both recordings are read by alike"
+           + "Shot noise alone cannot give the car both its single-interval variance and that growth; the "
+           "sensor model's `threshold_jitter` is this noise, and the section above fits it with the shot noise "
+           "to both recordings"
            + (" (the diagnosis names no shot noise on the moving low-light image)."
               if "shot_noise" not in results["lowlight_diagnosis"].detected else "."), "", held, ""]
 
@@ -243,7 +301,7 @@ def study_timing(real, md, results):
     preset = results["electrons"]
     sims = {
         "ours, ideal (no temporal noise)": Sensor(name="ideal"),
-        f"ours, shot noise N_e = {preset:.3g} (fit to both recordings)": Sensor(name="shot", electrons=float(preset)),
+        f"ours, {preset_label(results)} (fit to both recordings)": preset_sensor(results),
         "paper's reference generator (rsir)": Sensor(name="rsir", kind="rsir"),
     }
     rows = [("measured (car, static background)", f"{meas['rate'].size}", pct(np.mean(meas["range"] <= 1)),
@@ -275,8 +333,9 @@ def study_timing(real, md, results):
            f"![ISI CV against rate]({path})", "",
            f"Fitted photo-electrons per threshold (the `shot_noise` estimator of `spikegen diagnose`, radiance "
            f"`self`): N_e = {electrons:.4g} (z = {shot.z:.3g}), from the growth of the interval variance over spans "
-           "of intervals; all of the interval variance of both recordings gives N_e = "
-           f"{preset:.4g} (\"Shot noise measured alike on both recordings\" below). A real pixel is almost as regular "
+           "of intervals; the variance and lag-1 autocovariance of both recordings' intervals give "
+           f"{preset_label(results)} (\"Shot noise and threshold jitter, measured alike on both recordings\" "
+           "below). A real pixel is almost as regular "
            "as the noise-free integrate-and-fire model; the paper's reference generator (a Poisson gray level every "
            "frame plus U(0,1) interval noise) is far noisier than the camera.", ""]
 
@@ -399,12 +458,13 @@ def study_joint(real, md, results):
     scores = {label: {e: score_sensor(s, "self", 256.0, Sensor(name="shot", electrons=0.0 if math.isinf(e) else e)).mean
                       for e in grid} for label, s in data.items()}
     shared = max(grid, key=lambda e: sum(scores[label][e] for label in data))
+    fitted = {label: score_sensor(s, "self", 256.0, preset_sensor(results, "shot")).mean for label, s in data.items()}
     car, low = (label for label, _, _ in JOINT_RECORDINGS)
     rows = []
     for label, other in ((car, low), (low, car)):
         best = max(grid, key=lambda e: scores[label][e])
         rows.append((label, _ne(own[label]), f"{scores[label][own[label]]:.4g}", f"{scores[label][own[other]]:.4g}",
-                     f"{scores[label][preset]:.4g}", f"{scores[label][shared]:.4g}",
+                     f"{scores[label][preset]:.4g}", f"{fitted[label]:.4g}", f"{scores[label][shared]:.4g}",
                      f"{_ne(best)} ({scores[label][best]:.4g})"))
     grid_rows = [(_ne(e),) + tuple(f"{scores[label][e]:.4g}" for label in data) +
                  (f"{sum(scores[label][e] for label in data):.4g}",) for e in grid]
@@ -414,7 +474,8 @@ def study_joint(real, md, results):
            "(inf: none). Shared N_e: the one of the grid below with the largest sum of the two scores "
            f"({_ne(shared)}).", "",
            table(rows, ["recording", "own fit N_e (its diagnosis)", "score, own N_e", "score, the other's N_e",
-                        f"score, N_e = {_ne(preset)} (fit to both)", f"score, shared N_e = {_ne(shared)}",
+                        f"score, N_e = {_ne(preset)} alone", f"score, {preset_label(results)} (fit to both)",
+                        f"score, shared N_e = {_ne(shared)}",
                         "best N_e of the grid (score)"]), "",
            table(grid_rows, ["N_e", *[f"{label} score" for label in data], "sum"]), ""]
     md += _rate_dependence(data, preset)
@@ -425,7 +486,7 @@ def study_joint(real, md, results):
            "independent intervals; the table above shows whether a recording's 1/N_e equivalent changes with the "
            "rate and whether its consecutive intervals are correlated, and the last table whether its rate changes "
            "row by row over the recording (the low-light scene is a displayed image).", ""]
-    results["joint"] = {"own": own, "shared": shared, "scores": scores}
+    results["joint"] = {"own": own, "shared": shared, "scores": scores, "fitted": fitted}
 
 
 def _change(x) -> str:
@@ -533,11 +594,10 @@ def study_lowlight(real, md, results):
     ok = p.n_isi >= 4
     cv = np.sqrt(p.isi_var[ok]) / p.isi_mean[ok]
     x = np.minimum(uh.mean(0), 1.0)
-    e_car = results.get("electrons", math.inf)
     rows = [("measured", f"{np.mean(rate_count):.4f}", pct(np.mean(p.n == 0)), f"{np.percentile(rate_count, 1):.4f}",
              f"{np.median(cv):.3f}")]
     for label, sensor in (("ours, ideal", Sensor()),
-                          (f"ours, N_e = {e_car:.3g} (fit to both recordings)", Sensor(electrons=float(e_car)) if math.isfinite(e_car) else Sensor()),
+                          (f"ours, {preset_label(results)} (fit to both recordings)", preset_sensor(results)),
                           ("paper's reference generator (rsir)", Sensor(kind="rsir"))):
         s = simulate(x, 256.0, sensor, frames=T, seed=SEED)
         ps = stats.pixel_stats(s)
@@ -557,8 +617,8 @@ def study_lowlight(real, md, results):
            f"{', '.join(diag.detected) or 'nothing'}; shot noise N_e = {_fmt(shot.parameters.get('electrons'))} "
            f"(z = {shot.z:.3g}); hot pixels: {hot.parameters.get('found')} found. At low rates the intervals vary "
            "more than the car's background predicts; whether one N_e fits both recordings is measured in "
-           "\"One temporal-noise parameter for both recordings?\" and \"Shot noise measured alike on both "
-           "recordings\" below.", ""]
+           "\"One temporal-noise parameter for both recordings?\" and \"Shot noise and threshold jitter, "
+           "measured alike on both recordings\" below.", ""]
 
 
 def _motion_text(diag) -> str:
@@ -578,7 +638,6 @@ def _fmt(v):
 def study_gain(real, md, results):
     """Held-out frames: ideal against the fitted temporal noise, the radiance from the fit frames."""
     rows = []
-    e_car = results["electrons"]
     for label, path, kw in (("car (500 frames)", "car_500frames_250x400.npz", {}),
                             ("low light (200 frames)", "uhsr_lowlight_250x250.npz", {})):
         s = read_spikes(real / path, **kw)
@@ -586,15 +645,16 @@ def study_gain(real, md, results):
         Tf = int(round(0.8 * T))
         x = np.minimum(stats.window_rate(s[:Tf]).reshape(s.shape[1:]), 1.0)
         sims = {"ideal": simulate(x, 256.0, Sensor(), frames=T, seed=SEED),
-                "calibrated noise": simulate(x, 256.0, Sensor(electrons=float(e_car)), frames=T, seed=SEED)}
+                "calibrated noise": simulate(x, 256.0, preset_sensor(results), frames=T, seed=SEED)}
         m = {k: stats.discrepancies(s[Tf:], v[Tf:], x) for k, v in sims.items()}
         for k in stats.MEASURES:
             rows.append((label, k, f"{m['ideal'][k]:.4g}", f"{m['calibrated noise'][k]:.4g}"))
     md += ["## 5. Held-out frames: ideal against the calibrated temporal noise", "",
            "Radiance estimated from the first 80 % of the frames (static scenes: `self`), streams simulated "
-           f"for all frames with the ideal sensor and with shot noise at N_e = {e_car:.4g} (fit to both recordings); the "
+           f"for all frames with the ideal sensor and with the fitted noise, {preset_label(results)} (fit to both "
+           "recordings); the "
            "named measures (`spikegen.fidelity.stats.MEASURES`) on the last 20 %.", "",
-           table(rows, ["recording", "measure", "ideal", f"N_e = {e_car:.3g}"]), "",
+           table(rows, ["recording", "measure", "ideal", preset_label(results)]), "",
            "`spikegen diagnose --reference self` on the same recordings:", ""]
     for label, key in (("car", "car_diagnosis"), ("low light", "lowlight_diagnosis")):
         d = results[key]
@@ -760,12 +820,12 @@ def keep_preset(results, md):
     """--no-preset: the preset as committed, beside this run's fit."""
     from spikegen.sensorfile import load_sensor
 
-    kept = load_sensor(REPO / "assets" / "calibrated.json").electrons
-    e = results["electrons"]
+    kept = load_sensor(REPO / "assets" / "calibrated.json")
     md += ["## 6. The `calibrated` preset (not refitted by this run)", "",
-           f"`assets/calibrated.json` keeps N_e = {kept:.4g} photo-electrons per threshold (`paper` "
-           f"maps, no refractory period, subtractive reset, no flicker); this run's fit on both recordings "
-           f"(\"Shot noise measured alike on both recordings\") gives N_e = {e:.4g}. Run without `--no-preset` to "
+           f"`assets/calibrated.json` keeps N_e = {kept.electrons:.4g} photo-electrons per threshold and threshold "
+           f"jitter SD {kept.threshold_jitter:.3g} (`paper` maps, no refractory period, subtractive reset, no "
+           "flicker); this run's fit on both recordings (\"Shot noise and threshold jitter, measured alike on "
+           f"both recordings\") gives {preset_label(results)}. Run without `--no-preset` to "
            "write it (the golden conversion digests that use the preset change with it).", ""]
 
 
@@ -777,13 +837,16 @@ def write_preset(results, md):
     paper = get_sensor("paper", 250, 400)
     notes = {"fitted_by": "docs/make_fidelity.py",
              "electrons_from": "car_500frames_250x400.npz static background and uhsr_lowlight_250x250.npz pixels "
-                               "its motion hardly changes (drift.matched_shot_noise)",
+                               "its motion hardly changes (drift.matched_timing_noise: electrons and "
+                               "threshold_jitter together)",
              "maps": "BIT camera calibration (paper preset)"}
-    sensor = paper.replace(name="calibrated", electrons=float(e) if math.isfinite(e) else 0.0, notes=notes)
+    sensor = paper.replace(name="calibrated", electrons=float(e) if math.isfinite(e) else 0.0,
+                           threshold_jitter=results["jitter"], notes=notes)
     json_path, npz_path = save_sensor(sensor, REPO / "assets" / "calibrated")
     md += ["## 6. The `calibrated` preset", "",
            f"`paper` (BIT maps, R median 1) plus shot noise with N_e = {sensor.electrons:.4g} photo-electrons per "
-           f"threshold, fitted to both recordings (\"Shot noise measured alike on both recordings\" above); no "
+           f"threshold and a threshold jitter of relative SD {sensor.threshold_jitter:.3g}, fitted to both "
+           "recordings (\"Shot noise and threshold jitter, measured alike on both recordings\" above); no "
            "refractory period, subtractive reset, no flicker (none was found). "
            f"Written to `assets/{json_path.name}` + `assets/{npz_path.name}` "
            f"({(json_path.stat().st_size + npz_path.stat().st_size) / 1e6:.2f} MB).", ""]

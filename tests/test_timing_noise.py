@@ -30,3 +30,12 @@ def test_timing_chi2_rejects_the_wrong_noise():
     right = drift.timing_chi2(rec, 0.0, 0.03, repeats=1)["jitter"]
     wrong = drift.timing_chi2(rec, 1.0 / (2 * 0.03 ** 2), 0.0, repeats=1)["jitter"]
     assert right < 13.8 < wrong
+
+
+def test_timing_chi2_takes_seeds_for_every_recording():
+    """Two recordings, three repeats each: every simulation has its own seed (six in all)."""
+    rate = np.random.default_rng(3).uniform(0.05, 0.5, (16, 16))
+    recs = {k: (simulate(rate, 256, Sensor(electrons=3000.0), frames=600, seed=s), np.ones(rate.size, bool))
+            for k, s in (("a", 1), ("b", 2))}
+    chi2 = drift.timing_chi2(recs, 3000.0, 0.0, repeats=3)
+    assert set(chi2) == {"a", "b"} and all(np.isfinite(v) for v in chi2.values())

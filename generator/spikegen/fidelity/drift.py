@@ -21,6 +21,7 @@ reads as a low N_e (docs/lowlight.md). Here:
 """
 from __future__ import annotations
 
+import itertools
 import math
 from dataclasses import dataclass
 
@@ -534,7 +535,7 @@ def matched_timing_noise(recordings: dict, intensity: float = 256.0, seed: int =
     statistics (weights: the inverse of their covariance, the recording's plus the simulation's);
     then ``steps`` times: simulate the current estimate and move it by the same solution of
     measured - simulated; last, a simulation at the final estimate gives each recording's chi2."""
-    counter = iter(range(seed + 1, seed + 1 + 10 ** 6))
+    counter = itertools.count(seed + 1)
     prep = _timing_prep(recordings, intensity, seed)
 
     def sim(inverse, variance):
@@ -569,7 +570,7 @@ def timing_chi2(recordings: dict, electrons: float, jitter: float, intensity: fl
     (the same references and seeds)."""
     prep = _timing_prep(recordings, intensity, seed)
     inverse = 1.0 / electrons if electrons > 0 else 0.0
-    return _chi2(prep, _timing_sim(prep, inverse, jitter ** 2, intensity, repeats, iter(range(seed + 1, seed + 1 + repeats))))
+    return _chi2(prep, _timing_sim(prep, inverse, jitter ** 2, intensity, repeats, itertools.count(seed + 1)))
 
 
 def _timing_prep(recordings: dict, intensity: float, seed: int) -> dict:
