@@ -48,6 +48,10 @@ OLD_FIELD = "grid, fixed cube"
 KNOWLEDGE = {"spikelik": "true maps", "spikenerf-paper": "true maps", "spikenerf": "true maps",
              "spikenerf-noR": "none", "tfp32": "none", "tfp256": "none", "tfi": "none",
              "oracle": "ground-truth images"}
+# The `calibrated` preset is refitted from time to time: every row records its temporal noise
+# (sensor_model), and rows made with another preset are not the same runs. Rows from before this key
+# were made with the preset of commits dfecb33 to 76ab7ef: shot noise of N_e = 1.383e4, no jitter.
+LEGACY_CALIBRATED = {"electrons": 13829.406571440471, "threshold_jitter": 0.0}
 KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed", "iterations", "frames", "field")
 CAL_INTENSITY, CAL_FRAMES = 64.0, 2000  # the simulated calibration recordings: a dark and two flats
 CAL_FLATS_X = (0.25, 0.75)  # flat radiances; their "lux" is the nominal rate X * I / 256 (spikes per frame)
@@ -103,11 +107,32 @@ def calibration(sensor: str, args) -> Path:
     return prefix.with_suffix(".json")
 
 
+def sensor_model(sensor: str) -> dict:
+    """The preset's temporal noise as rows record it (``sensor_model``)."""
+    from spikegen.presets import get_sensor
+
+    s = get_sensor(sensor, 8, 8, 0)
+    return {"electrons": float(s.electrons), "threshold_jitter": float(s.threshold_jitter)}
+
+
+def sensor_name(row: dict) -> str:
+    """The sensor of a row as the tables and the resume group it: ``calibrated`` with its temporal
+    noise (LEGACY_CALIBRATED for rows that do not record it), any other preset by its name."""
+    if row["sensor"] != "calibrated":
+        return row["sensor"]
+    m = row.get("sensor_model") or LEGACY_CALIBRATED
+    jitter = f", jitter SD {m['threshold_jitter']:.2g}" if m["threshold_jitter"] else ""
+    return f"calibrated (N_e {m['electrons']:.4g}{jitter})"
+
+
+def row_key(row: dict) -> tuple:
+    return tuple(row.get(k, OLD_FIELD) if k == "field" else sensor_name(row) if k == "sensor" else row[k] for k in KEY)
+
+
 def done_keys() -> set:
     if not RESULTS.is_file():
         return set()
-    rows = [json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]
-    return {tuple(r.get(k, OLD_FIELD) if k == "field" else r[k] for k in KEY) for r in rows}
+    return {row_key(json.loads(line)) for line in RESULTS.read_text().splitlines() if line.strip()}
 
 
 def run_one(folder: Path, cell: dict, args) -> dict:
@@ -194,9 +219,11 @@ def main() -> None:
     if unknown or ("lego" in args.data and not LEGO.is_dir()):
         sys.exit(f"unknown methods {unknown}" if unknown else f"{LEGO} not found: the real lego is needed")
     done = done_keys()
+    models = {s: sensor_model(s) for s in args.sensors}
     RESULTS.parent.mkdir(parents=True, exist_ok=True)
     for data, sensor, i, cell in cells(args):
-        if tuple(cell[k] for k in KEY) in done:
+        cell["sensor_model"] = models[sensor]
+        if row_key(cell) in done:
             continue
         row = run_one(dataset(data, sensor, i, args), cell, args)
         with RESULTS.open("a") as fh:

@@ -16,7 +16,8 @@ RESULTS = HERE / "results" / "protocol.jsonl"
 OUT = HERE / "PROTOCOL.md"
 INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
-from bench_protocol import FIELD, KNOWLEDGE, METHODS, OLD_FIELD  # noqa: E402 (the runner's names, stdlib-only module)
+from bench_protocol import (FIELD, KNOWLEDGE, METHODS, OLD_FIELD, sensor_model,  # noqa: E402 (the runner's names)
+                            sensor_name)
 from spikenerf.config import default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
 
 SPIKE_METHODS = [m for m in METHODS if m != "oracle"]  # the plan's runs (the oracle is a reference, not planned)
@@ -75,9 +76,12 @@ over them.
 
 
 def load() -> list:
+    """The results, each row's ``sensor`` named as the tables group it (bench_protocol.sensor_name:
+    the ``calibrated`` preset with its temporal noise, since rows of different presets differ)."""
     if not RESULTS.is_file():
         return []
-    return [json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]
+    rows = [json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]
+    return [{**r, "sensor": sensor_name(r)} for r in rows]
 
 
 def _stat(values, digits: int = 2) -> str:
@@ -133,7 +137,8 @@ def missing(rows: list) -> list[str]:
             if r["iterations"] == default_iters(r["resolution"], r["resolution"]) and not r["frames"]}
     out = []
     for res, datas, sensors, intensities, methods in PLAN:
-        for data, sensor in itertools.product(datas, sensors):
+        for data, preset in itertools.product(datas, sensors):
+            sensor = sensor_name({"sensor": preset, "sensor_model": sensor_model(preset)})  # the preset as it is now
             want = list(itertools.product(intensities, methods, SEEDS))
             gone = [w for w in want if (res, data, sensor) + w not in have]
             if gone:

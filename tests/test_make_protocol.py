@@ -93,3 +93,19 @@ def test_scenes_table_puts_the_procedural_scenes_side_by_side():
     gone = [x for x in make_protocol.missing(rows) if ", rsir, 100 x 100" in x and not x.startswith("- lego")]
     assert any(x.startswith("- chair") and "5 of 9 runs (i64, method x seed)" in x for x in gone)
     assert any(x.startswith("- ficus") and "9 of 9 runs" in x for x in gone)
+
+
+def test_rows_of_different_calibrated_presets_are_different_runs():
+    """A row records its preset's temporal noise; rows from before that key were made with N_e =
+    1.383e4 and no jitter. The tables and the resume keep the two presets apart."""
+    import bench_protocol
+
+    old = {**_row("spikelik", "true maps", 25.0), "sensor": "calibrated", "field": bench_protocol.FIELD,
+           "iterations": 9000}
+    new = {**old, "sensor_model": bench_protocol.sensor_model("calibrated")}
+    assert bench_protocol.sensor_name(old) == "calibrated (N_e 1.383e+04)"
+    assert bench_protocol.sensor_name(new) != bench_protocol.sensor_name(old)
+    assert "jitter SD" in bench_protocol.sensor_name(new)  # the preset now has a threshold jitter
+    assert bench_protocol.row_key(new) != bench_protocol.row_key(old)
+    rsir = {**old, "sensor": "rsir"}
+    assert bench_protocol.sensor_name(rsir) == "rsir"
