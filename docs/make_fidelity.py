@@ -481,9 +481,11 @@ def study_joint(real, md, results):
     md += _rate_dependence(data, preset)
     loss = {label: scores[label][own[label]] - scores[label][own[other]] for label, other in ((car, low), (low, car))}
     md += [f"Under the other's N_e rather than its own, the car scores {_change(-loss[car])} and the low light "
-           f"{_change(-loss[low])} nats per pixel. Shot noise, threshold jitter and dark-current shot noise (the dark "
-           "charge is in the Poisson charge the model draws) all give the same interval CV at every rate and "
-           "independent intervals; the table above shows whether a recording's 1/N_e equivalent changes with the "
+           f"{_change(-loss[low])} nats per pixel. Shot noise, a threshold jitter whose reset subtracts the "
+           "threshold it fired at, and dark-current shot noise (the dark charge is in the Poisson charge the model "
+           "draws) all give the same interval CV at every rate and independent intervals (the sensor's "
+           "`threshold_jitter`, whose reset subtracts the nominal threshold, anti-correlated ones: \"Shot noise and "
+           "threshold jitter, measured alike on both recordings\" below); the table above shows whether a recording's 1/N_e equivalent changes with the "
            "rate and whether its consecutive intervals are correlated, and the last table whether its rate changes "
            "row by row over the recording (the low-light scene is a displayed image).", ""]
     results["joint"] = {"own": own, "shared": shared, "scores": scores, "fitted": fitted}
@@ -530,8 +532,10 @@ def _rate_dependence(data, electrons, bins=5):
                              f"{np.nanmedian(sc[m]):+.2f}",
                              f"{inv[m].mean():.2g} +- {inv[m].std() / math.sqrt(max(m.sum(), 1)):.1g}"))
     return ["Interval noise against the rate (static pixels with >= 8 intervals, 5 rate bins of equal counts). "
-            "Shot noise (and threshold jitter, which times the same) gives intervals of the same CV at every rate "
-            "and no correlation beyond the rounding's (negative) between consecutive intervals.", "",
+            "Shot noise (and a threshold jitter whose reset subtracts the threshold it fired at, which accumulates "
+            "alike) gives intervals of the same CV at every rate and no correlation beyond the rounding's (negative) "
+            "between consecutive intervals; the sensor's `threshold_jitter` (the nominal threshold subtracted) gives "
+            "the same CV at every rate too, but consecutive intervals correlated by -1/2.", "",
             table(rows, ["recording", "stream", "rate (spikes/frame)", "median ISI CV", "median lag-1 correlation",
                          "mean 1/N_e equivalent +- SE"]), ""] + _row_change(data)
 
