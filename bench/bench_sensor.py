@@ -8,7 +8,8 @@ It uses the model's own per-frame charge (sensor.ChargeSchedule, the fixed-point
 of "q = lambda at frame t") so that, without shot noise and with the same start phases, its
 spikes must equal ours bit for bit; the benchmark checks that. With shot noise the two draw
 different random numbers (the yardstick draws Poisson every frame as usual), so the check is
-statistical: the mean rates agree.
+statistical: the mean rates agree. The third case adds a threshold jitter (``--jitter``), which
+our simulator runs in its frame loop (sensor.loop_readout) instead of the fused carry pass.
 
 Prints one table: CPU seconds per view (best of --repeat) and their ratio on one core; the
 wall-clock ratio with ``simulate(threads=os.cpu_count())`` (row blocks in parallel threads; the
@@ -28,20 +29,24 @@ from spikegen.sensor import ONE, ChargeSchedule, simulate, start_phase
 
 
 def yardstick(x: np.ndarray, intensity: float, resp, dark, frames: int, phase, electrons: float = 0.0,
-              rng: np.random.Generator | None = None) -> np.ndarray:
-    """Plain loop over frames. ``x [K, H, W]`` -> ``uint8 [T, H, W]``."""
+              rng: np.random.Generator | None = None, jitter: float = 0.0) -> np.ndarray:
+    """Plain loop over frames. ``x [K, H, W]`` -> ``uint8 [T, H, W]``; ``jitter``: the firing level
+    ``1 + N(0, jitter^2)`` drawn anew after each spike, the nominal threshold subtracted."""
     K, H, W = x.shape
     sched = ChargeSchedule.from_radiance(x.reshape(K, -1), intensity, resp.reshape(-1), dark.reshape(-1), frames)
     acc = phase.reshape(-1).astype(np.float64) / ONE
+    level = 1.0 + (rng.normal(0.0, jitter, H * W) if jitter else 0.0)
     out = np.zeros((frames, H * W), dtype=np.uint8)
     for t in range(frames):
         q = sched.frame(t) / ONE  # exact: multiples of 2**-32 below 2**21
         if electrons:
             q = rng.poisson(q * electrons) / electrons
         acc += q
-        fire = acc >= 1.0
+        fire = acc >= level
         acc[fire] -= 1.0
-        np.minimum(acc, 1.0, out=acc)
+        np.minimum(acc, 1.0, out=acc, where=fire)
+        if jitter:
+            level[fire] = 1.0 + rng.normal(0.0, jitter, int(fire.sum()))
         out[t] = fire
     return out.reshape(frames, H, W)
 
@@ -91,6 +96,8 @@ def main():
     ap.add_argument("--subframes", type=int, default=16)
     ap.add_argument("--intensity", type=float, default=64)
     ap.add_argument("--electrons", type=float, default=1000.0)
+    ap.add_argument("--jitter", type=float, default=0.0036, help="threshold jitter of the third case "
+                    "(default: about the calibrated preset's)")
     ap.add_argument("--repeat", type=int, default=3)
     a = ap.parse_args()
     x = scene(a.size, a.subframes)
@@ -100,18 +107,20 @@ def main():
     phase = start_phase(seed, a.size, a.size)
     rows = []
     threads = os.cpu_count() or 1
-    for label, electrons in (("no shot noise", 0.0), (f"shot noise N_e={a.electrons:g}", a.electrons)):
-        s = sensor.replace(electrons=electrons)
+    cases = (("no shot noise", 0.0, 0.0), (f"shot noise N_e={a.electrons:g}", a.electrons, 0.0),
+             (f"shot noise N_e={a.electrons:g} + threshold jitter {a.jitter:g} (the frame loop)", a.electrons, a.jitter))
+    for label, electrons, jitter in cases:
+        s = sensor.replace(electrons=electrons, threshold_jitter=jitter)
         t_ours, ours = best_time(lambda: simulate(x, a.intensity, s, a.frames, seed=seed, phase=phase), a.repeat)
         t_loop, ref = best_time(lambda: yardstick(x, a.intensity, resp, dark, a.frames, phase, electrons,
-                                                  np.random.default_rng(1)), max(1, a.repeat - 1))
+                                                  np.random.default_rng(1), jitter), max(1, a.repeat - 1))
         if electrons == 0:
             agree = "bit-identical" if np.array_equal(ours, ref) else f"DIFFER in {int((ours != ref).sum())} px-frames"
         else:
             agree = f"mean rate {ours.mean():.4f} vs {ref.mean():.4f}"
         mem = peak_mb(lambda: simulate(x, a.intensity, s, a.frames, seed=seed, phase=phase))
         w_loop = best_wall(lambda: yardstick(x, a.intensity, resp, dark, a.frames, phase, electrons,
-                                             np.random.default_rng(1)), max(1, a.repeat - 1))
+                                             np.random.default_rng(1), jitter), max(1, a.repeat - 1))
         w_ours = best_wall(lambda: simulate(x, a.intensity, s, a.frames, seed=seed, phase=phase, threads=threads),
                            a.repeat)
         rows.append((label, t_loop, t_ours, t_loop / t_ours, w_loop / w_ours, mem, agree))
