@@ -123,9 +123,10 @@ def estimate_electrons(real, results):
     # the preset: shot noise and threshold jitter fitted together to both recordings (the
     # intervals' variance and lag-1 autocovariance), and the shot-noise-only fit checked alike
     recordings = {"car": (car, _static_mask(car).reshape(-1)), "low light": (low, low_mask.reshape(-1))}
-    timing = drift.matched_timing_noise(recordings)
+    data = drift.timing_data(recordings)  # the references and measured statistics, for both
+    timing = drift.matched_timing_noise(recordings, data=data)
     results["timing"] = timing
-    results["timing_shot_chi2"] = drift.timing_chi2(recordings, 1.0 / inv, 0.0)
+    results["timing_shot_chi2"] = drift.timing_chi2(recordings, 1.0 / inv, 0.0, data=data)
     if not timing.inverse_electrons > 0:
         sys.exit("make_fidelity: the joint fit of shot noise and threshold jitter gives no shot noise")
     results["electrons"] = timing.electrons

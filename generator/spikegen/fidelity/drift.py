@@ -273,9 +273,7 @@ def matched_shot_noise(spikes: np.ndarray, mask: np.ndarray, intensity: float = 
     from ..sensor import Sensor, simulate
 
     T = spikes.shape[0]
-    mean = spikes.mean(axis=0, dtype=np.float64)
-    rate = mean.reshape(-1)
-    x = np.minimum(mean, 1.0) * (256.0 / intensity)
+    rate, x = _ideal_radiance(spikes, intensity)
     ref, _, _ = detrended_intervals(simulate(x, intensity, Sensor(), frames=T, seed=seed), 2)
     measured = interval_excess(spikes, ref, rate, mask)
     electrons, done = float(start), []
@@ -289,6 +287,13 @@ def matched_shot_noise(spikes: np.ndarray, mask: np.ndarray, intensity: float = 
         electrons = 1.0 / inverse
     inverse_se = abs(1.0 / done[-1][0]) * float(np.hypot(measured[1] / sim[0], measured[0] * sim[1] / sim[0] ** 2))
     return MatchedShotNoise(float(inverse), inverse_se, measured, (sim[0], sim[1]), tuple(done), measured[2])
+
+def _ideal_radiance(spikes: np.ndarray, intensity: float) -> tuple[np.ndarray, np.ndarray]:
+    """``(rate [P], x [H, W])``: each pixel's measured mean rate, and the radiance at which the
+    ideal sensor at ``intensity`` fires at it (``min(rate, 1) * 256 / intensity``)."""
+    mean = spikes.mean(axis=0, dtype=np.float64)
+    return mean.reshape(-1), np.minimum(mean, 1.0) * (256.0 / intensity)
+
 
 # ---------------------------------------------------------------------- inside spikegen diagnose
 MOTION_WINDOWS = 8  # windows of frames the image's shift is measured in
@@ -514,7 +519,7 @@ class TimingNoise:
 
 def matched_timing_noise(recordings: dict, intensity: float = 256.0, seed: int = TIMING_SEED,
                          start: tuple = TIMING_START, steps: int = TIMING_STEPS,
-                         repeats: int = TIMING_REPEATS) -> TimingNoise:
+                         repeats: int = TIMING_REPEATS, data: dict | None = None) -> TimingNoise:
     """Shot noise (1 / N_e) and a threshold jitter (sigma^2, the sensor's ``threshold_jitter``)
     fitted together to one or more recordings ``{name: (spikes [T, H, W], mask [P])}``, over the
     pixels of each mask, each pixel's slow trend removed: one parameter set for all of them.
@@ -534,9 +539,10 @@ def matched_timing_noise(recordings: dict, intensity: float = 256.0, seed: int =
     included); the estimate is the generalised least-squares solution of all recordings' stacked
     statistics (weights: the inverse of their covariance, the recording's plus the simulation's);
     then ``steps`` times: simulate the current estimate and move it by the same solution of
-    measured - simulated; last, a simulation at the final estimate gives each recording's chi2."""
+    measured - simulated; last, a simulation at the final estimate gives each recording's chi2.
+    ``data``: :func:`timing_data` of the same recordings, intensity and seed, if already made."""
     counter = itertools.count(seed + 1)
-    prep = _timing_prep(recordings, intensity, seed)
+    prep = data or timing_data(recordings, intensity, seed)
 
     def sim(inverse, variance):
         return _timing_sim(prep, inverse, variance, intensity, repeats, counter)
@@ -563,29 +569,30 @@ def matched_timing_noise(recordings: dict, intensity: float = 256.0, seed: int =
 
 
 def timing_chi2(recordings: dict, electrons: float, jitter: float, intensity: float = 256.0,
-                seed: int = TIMING_SEED, repeats: int = TIMING_REPEATS) -> dict:
+                seed: int = TIMING_SEED, repeats: int = TIMING_REPEATS, data: dict | None = None) -> dict:
     """``{name: chi2}`` (2 degrees of freedom each) of the recordings' :func:`timing_excess`
     statistics against a simulation of shot noise of ``electrons`` (0: none) and a threshold
     jitter ``jitter``: the check :func:`matched_timing_noise` makes of its own fit, for any model
-    (the same references and seeds)."""
-    prep = _timing_prep(recordings, intensity, seed)
+    (the same references and seeds). ``data``: :func:`timing_data`, if already made."""
+    prep = data or timing_data(recordings, intensity, seed)
     inverse = 1.0 / electrons if electrons > 0 else 0.0
     return _chi2(prep, _timing_sim(prep, inverse, jitter ** 2, intensity, repeats, itertools.count(seed + 1)))
 
 
-def _timing_prep(recordings: dict, intensity: float, seed: int) -> dict:
-    """Per recording: frames, the radiance of its mean rates, the rates, the ideal reference's
-    statistics (``seed``), its mask, and its measured :func:`timing_excess`."""
+def timing_data(recordings: dict, intensity: float = 256.0, seed: int = TIMING_SEED) -> dict:
+    """What :func:`matched_timing_noise` and :func:`timing_chi2` take of the recordings ``{name:
+    (spikes, mask)}``, made once for both: per recording its frames, the ideal radiance of its mean
+    rates (:func:`_ideal_radiance`), the rates, the ideal reference's statistics (``seed``), its
+    mask, and its measured :func:`timing_excess`."""
     from ..sensor import Sensor, simulate
 
     prep = {}
     for name, (spikes, mask) in recordings.items():
         T = spikes.shape[0]
-        mean = spikes.mean(axis=0, dtype=np.float64)
-        x = np.minimum(mean, 1.0) * (256.0 / intensity)
+        rate, x = _ideal_radiance(spikes, intensity)
         ref = detrended_lag_covariance(simulate(x, intensity, Sensor(), frames=T, seed=seed), 2)
-        m, mc, n = timing_excess(spikes, ref, mean.reshape(-1), mask)
-        prep[name] = dict(T=T, x=x, rate=mean.reshape(-1), ref=ref, mask=mask, m=m, mc=mc, n=n)
+        m, mc, n = timing_excess(spikes, ref, rate, mask)
+        prep[name] = dict(T=T, x=x, rate=rate, ref=ref, mask=mask, m=m, mc=mc, n=n)
     return prep
 
 
