@@ -131,20 +131,23 @@ class GridField(nn.Module):
         return _trilinear(self.grid, self.normalise(points))
 
     def _read(self, grid: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
-        """Trilinear values [M, C] of ``grid`` at world points [M, 3] (sparse or dense path)."""
-        if not self.sparse:
+        """Trilinear values [M, C] of ``grid`` at world points [M, 3]: ``grid_sample`` without
+        gradients (evaluation, rendering); with them, the 8 corners of each point gathered, and the
+        gradient added in place into ``grid.grad`` (dense mode, :class:`_CornerRead`) or recorded on
+        the tape (sparse mode)."""
+        train = torch.is_grad_enabled() and grid.requires_grad
+        if not train:
             return _trilinear(grid, self.normalise(points))
         idx, w = corners(self.unit(points), grid.shape[2:])
+        if not self.sparse:
+            return _CornerRead.apply(grid, idx, w)
         flat = grid.detach().view(grid.shape[1], -1)
-        if torch.is_grad_enabled() and grid.requires_grad:
-            # the distinct voxels, sorted (gathers from the big grid then run in address order),
-            # as a leaf [C, U]; the gradient is summed into it, never into a grid-sized tensor
-            voxels, inverse = torch.unique(idx.view(-1), return_inverse=True)
-            leaf = flat.index_select(1, voxels).requires_grad_(True)
-            self.tape.append((grid, voxels, leaf))
-            vals = leaf.index_select(1, inverse)  # [C, M * 8]
-        else:
-            vals = flat.index_select(1, idx.view(-1))
+        # the distinct voxels, sorted (gathers from the big grid then run in address order),
+        # as a leaf [C, U]; the gradient is summed into it, never into a grid-sized tensor
+        voxels, inverse = torch.unique(idx.view(-1), return_inverse=True)
+        leaf = flat.index_select(1, voxels).requires_grad_(True)
+        self.tape.append((grid, voxels, leaf))
+        vals = leaf.index_select(1, inverse)  # [C, M * 8]
         return (vals.view(-1, *w.shape) * w).sum(-1).t()
 
     def query(self, points: torch.Tensor, dirs: torch.Tensor):
@@ -366,7 +369,11 @@ def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None) -> 
     dims = grid.shape[2:]
     b = [min(block, n) for n in dims]
     starts = [int(torch.randint(0, n - c + 1, (1,), generator=generator)) for n, c in zip(dims, b)]
-    sub = grid[:, :, starts[0]:starts[0] + b[0], starts[1]:starts[1] + b[1], starts[2]:starts[2] + b[2]]
+    box = tuple(slice(s, s + c) for s, c in zip(starts, b))
+    if tape is None and torch.is_grad_enabled() and grid.requires_grad:
+        sub = _BlockRead.apply(grid, box)  # its gradient added in place into grid.grad's block
+        return sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean()
+    sub = grid[(slice(None), slice(None)) + box]
     if tape is not None and torch.is_grad_enabled():  # a leaf copy of the block; its voxels' flat index
         axes = [torch.arange(s, s + c, device=grid.device) for s, c in zip(starts, b)]
         idx = ((axes[0] * dims[1])[:, None, None] + axes[1][None, :, None]) * dims[2] + axes[2][None, None, :]
@@ -374,6 +381,57 @@ def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None) -> 
         tape.append((grid, idx.view(-1), leaf))
         sub = leaf.view(sub.shape)
     return sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean()
+
+
+def _grad_buffer(grid: torch.Tensor) -> torch.Tensor:
+    """``grid.grad``, made (zeros) if there is none: the buffer the reads below add into."""
+    if grid.grad is None:
+        grid.grad = torch.zeros_like(grid)
+    return grid.grad
+
+
+class _CornerRead(torch.autograd.Function):
+    """Trilinear values ``[M, C]`` of a grid ``[1, C, ...]`` from each point's 8 corners (flat
+    indices ``idx [M, 8]`` and weights ``w [M, 8]``, :func:`corners`).
+
+    The backward adds the grid's gradient straight into ``grid.grad`` (with ``index_add_``) and
+    gives autograd none to accumulate. Autograd's way (``grid_sample``'s backward, or any function
+    returning a gradient) makes a new grid-sized tensor on every step, which on the CPU costs page
+    faults and a second pass to add it in; the trainer instead keeps ``grid.grad`` between steps
+    (``zero_grad(set_to_none=False)``: zeroed in place), so a step's grid-sized work is one memset
+    and the optimiser's pass (docs/trainer.md, "Speed at 400 x 400"). The gradient is the one
+    ``grid_sample`` gives, up to float rounding (tested)."""
+
+    @staticmethod
+    def forward(ctx, grid, idx, w):
+        C = grid.shape[1]
+        vals = grid.detach().view(C, -1).index_select(1, idx.view(-1)).view(C, *idx.shape)
+        ctx.save_for_backward(idx, w)
+        ctx.grid = grid
+        return (vals * w).sum(-1).t()
+
+    @staticmethod
+    def backward(ctx, g):
+        idx, w = ctx.saved_tensors
+        grad = _grad_buffer(ctx.grid)
+        C = grad.shape[1]
+        grad.view(C, -1).index_add_(1, idx.view(-1), (g.t()[:, :, None] * w).reshape(C, -1))
+        return None, None, None
+
+
+class _BlockRead(torch.autograd.Function):
+    """A copy of the block ``box`` (three slices) of a grid ``[1, C, ...]``; the backward adds its
+    gradient in place into that block of ``grid.grad`` (as :class:`_CornerRead`, no grid-sized tensor)."""
+
+    @staticmethod
+    def forward(ctx, grid, box):
+        ctx.grid, ctx.box = grid, (slice(None), slice(None)) + tuple(box)
+        return grid.detach()[ctx.box].clone()
+
+    @staticmethod
+    def backward(ctx, g):
+        _grad_buffer(ctx.grid)[ctx.box] += g
+        return None, None
 
 
 _CORNER_BITS = torch.tensor([[d, h, w] for d in (0, 1) for h in (0, 1) for w in (0, 1)], dtype=torch.bool)  # [8, 3]
@@ -391,10 +449,11 @@ def corners(unit: torch.Tensor, dims) -> tuple[torch.Tensor, torch.Tensor]:
     base = torch.minimum(pos.floor(), top - 1)
     frac = pos - base  # [M, 3] in [0, 1]
     stride = torch.tensor([Y * Z, Z, 1], device=unit.device)
-    flat0 = (base.long() * stride).sum(-1)  # [M]
-    bits = _CORNER_BITS.to(unit.device)
-    idx = flat0[:, None] + (bits.long() * stride).sum(-1)  # [M, 8]
-    w = torch.where(bits, frac[:, None, :], 1 - frac[:, None, :]).prod(-1)  # [M, 8]
+    flat0 = base.long() @ stride  # [M]
+    idx = flat0[:, None] + _CORNER_BITS.to(unit.device).long() @ stride  # [M, 8]
+    # corner (d, h, w) weighs wx[d] * wy[h] * wz[w] (in that order of products): an outer product
+    wx, wy, wz = torch.stack([1 - frac, frac], dim=1).unbind(-1)  # [M, 2] each: (1 - f, f) per axis
+    w = ((wx[:, :, None] * wy[:, None, :])[:, :, :, None] * wz[:, None, None, :]).reshape(-1, 8)  # [M, 8]
     return idx, w
 
 

@@ -340,7 +340,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         _check_loss(loss, it, ck_path, bar)
         for g, base in zip(opt.param_groups, (cfg.lr_grid, cfg.lr_mlp)):
             g["lr"] = base * learning_rate_factor(it, cfg.iters)
-        opt.zero_grad(set_to_none=True)
+        opt.zero_grad(set_to_none=False)  # the grids' gradients stay allocated: model._CornerRead adds into them
         loss.backward()
         opt.step()
         if it % 10 == 0:
