@@ -41,7 +41,7 @@ def test_sparse_reads_match_grid_sample_in_values_and_gradients():
     f = _field()
     pts, dirs = _points(500)
     up = torch.randn(500, 2, generator=torch.Generator().manual_seed(2))
-    sigma, x = f.query(pts, dirs)  # dense path: grid_sample, autograd's dense gradients
+    sigma, x = f.query(pts, dirs)  # dense path: corner reads, the gradient added into grid.grad
     ((sigma * up[:, 0]).sum() + (x * up[:, 1]).sum()).backward()
     dense = [p.grad.clone() for p in f.grids()]
     f.sparse = True

@@ -2,7 +2,10 @@
 
 One grid ``[1, 1 + C, Nx, Ny, Nz]`` of cubic voxels holds raw density (channel 0) and luminance
 (the sensor is monochrome) over an axis-aligned box (``aabb``, at first the cube
-``[-bound, bound]^3``); a point's values are read by trilinear interpolation (``grid_sample``).
+``[-bound, bound]^3``); a point's values are read by trilinear interpolation: ``grid_sample``
+without gradients (evaluation, rendering), and in training by gathering its 8 corner voxels, the
+gradient added in place into ``grid.grad`` (:class:`_CornerRead`: no grid-sized tensor is made
+per step).
 Luminance is ``sigmoid`` of channel 1 (the degree-0 term) plus, with ``sh_degree`` 1 or 2
 (the trainer's default is 1), a view-dependent term: real spherical harmonics of the viewing
 direction weighted by coefficients read from a second grid ``sh_scale`` times coarser
@@ -15,10 +18,10 @@ upsampled during training (coarse to fine) and may be cropped to the box the obj
 cube); an occupancy mask of the grid lets the renderer skip empty space. The constructor arguments are stored in checkpoints (:meth:`config`).
 
 With the opt-in lazy optimiser (``--lazy-above``, ``TrainConfig.lazy_above``) the trainer switches a field to
-sparse mode (``sparse = True``): points are then sampled by
-gathering their 8 corner voxels (:func:`corners`) instead of ``grid_sample``, and the voxels
-read with gradients enabled are recorded on ``tape`` for the lazy optimiser (optim.py), so
-that a step's work follows the rays, not the grid (docs/trainer.md, "Speed at 400 x 400").
+sparse mode (``sparse = True``): the voxels read with gradients enabled (their 8 corner voxels,
+:func:`corners`) are then recorded on ``tape`` for the lazy optimiser (optim.py) instead of
+adding into ``grid.grad``, so that a step's work follows the rays, not the grid (docs/trainer.md,
+"Speed at 400 x 400").
 """
 from __future__ import annotations
 
@@ -343,12 +346,14 @@ CPU_SPLIT = 2  # points are sampled as this many batches on the CPU (a fixed num
 def _trilinear(grid: torch.Tensor, coords: torch.Tensor, split: int | None = None) -> torch.Tensor:
     """Values [M, channels] of ``grid [1, channels, D, H, W]`` at grid_sample coordinates [M, 3].
 
-    PyTorch's CPU kernels for 3-D grid_sample run in parallel only over the batch, so on the CPU
-    many points go in as ``CPU_SPLIT`` batches against the same (expanded) grid: forward and
-    backward then use two cores. The backward then fills one dense gradient per batch, which
-    costs more than it saves unless there are enough points per grid value (the rule below is
-    the measured break-even on 2 cores: ``python bench/bench_trainer_step.py``). ``split``
-    forces the number of batches (None: :func:`split_count`).
+    The field reads through this without gradients (evaluation, rendering); training reads go
+    through :class:`_CornerRead`. PyTorch's CPU kernels for 3-D grid_sample run in parallel only
+    over the batch, so on the CPU many points go in as ``CPU_SPLIT`` batches against the same
+    (expanded) grid: forward and backward then use two cores. With gradients the backward fills
+    one dense gradient per batch, which costs more than it saves unless there are enough points
+    per grid value (the rule below is that measured break-even on 2 cores, ``python
+    bench/bench_trainer_step.py``, from when training read through here too). ``split`` forces the
+    number of batches (None: :func:`split_count`).
     """
     C, M = grid.shape[1], coords.shape[0]
     k = split or split_count(grid, M)
