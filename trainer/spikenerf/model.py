@@ -141,9 +141,9 @@ class GridField(nn.Module):
         train = torch.is_grad_enabled() and grid.requires_grad
         if not train:
             return _trilinear(grid, self.normalise(points))
-        idx, w = corners(self.unit(points), grid.shape[2:])
         if not self.sparse:
-            return _CornerRead.apply(grid, idx, w)
+            return _CornerRead.apply(grid, *_corners_by_corner(self.unit(points), grid.shape[2:]))
+        idx, w = corners(self.unit(points), grid.shape[2:])
         flat = grid.detach().view(grid.shape[1], -1)
         # the distinct voxels, sorted (gathers from the big grid then run in address order),
         # as a leaf [C, U]; the gradient is summed into it, never into a grid-sized tensor
@@ -183,7 +183,7 @@ class GridField(nn.Module):
         if X * Y * Z > 2 ** 24:  # the flat index below is exact in float32 only up to 2^24
             cell = cell.double()
         flat = (cell @ cell.new_tensor([Y * Z, Z, 1.0])).long()  # one dot product
-        return self.occupancy.reshape(-1)[flat]
+        return self.occupancy.reshape(-1).index_select(0, flat)  # (index_select: gathers faster than [flat])
 
     def coarse_occupied(self, points: torch.Tensor) -> torch.Tensor:
         """bool [M], a conservative :meth:`occupied` for a neighbourhood: True wherever a point
@@ -199,7 +199,7 @@ class GridField(nn.Module):
         Xc, Yc, Zc = blocks.shape
         b = torch.div(self._cell(points), COARSE, rounding_mode="floor")
         flat = (b @ b.new_tensor([Yc * Zc, Zc, 1.0])).long()  # exact: blocks are 1/COARSE^3 of the grid
-        return blocks.reshape(-1)[flat]
+        return blocks.reshape(-1).index_select(0, flat)
 
     def _coarse_mask(self) -> torch.Tensor:
         occ = self.occupancy
@@ -397,7 +397,7 @@ def _grad_buffer(grid: torch.Tensor) -> torch.Tensor:
 
 class _CornerRead(torch.autograd.Function):
     """Trilinear values ``[M, C]`` of a grid ``[1, C, ...]`` from each point's 8 corners (flat
-    indices ``idx [M, 8]`` and weights ``w [M, 8]``, :func:`corners`).
+    indices ``idx [8, M]`` and weights ``w [8, M]``, :func:`_corners_by_corner`).
 
     The backward adds the grid's gradient straight into ``grid.grad`` (with ``index_add_``) and
     gives autograd none to accumulate. Autograd's way (``grid_sample``'s backward, or any function
@@ -413,14 +413,14 @@ class _CornerRead(torch.autograd.Function):
         vals = grid.detach().view(C, -1).index_select(1, idx.view(-1)).view(C, *idx.shape)
         ctx.save_for_backward(idx, w)
         ctx.grid = grid
-        return (vals * w).sum(-1).t()
+        return (vals * w).sum(1).t()
 
     @staticmethod
     def backward(ctx, g):
         idx, w = ctx.saved_tensors
         grad = _grad_buffer(ctx.grid)
         C = grad.shape[1]
-        grad.view(C, -1).index_add_(1, idx.view(-1), (g.t()[:, :, None] * w).reshape(C, -1))
+        grad.view(C, -1).index_add_(1, idx.view(-1), (g.t()[:, None, :] * w).reshape(C, -1))
         return None, None, None
 
 
@@ -447,18 +447,27 @@ def corners(unit: torch.Tensor, dims) -> tuple[torch.Tensor, torch.Tensor]:
     points (an int: the same along x, y, z) over ``[-1, 1]^3``: flat index ``[M, 8]`` (axis 0 of
     the grid <- x, as :meth:`GridField.occupied`) and weights ``[M, 8]`` of points ``unit [M, 3]``.
     Points are clamped into the grid (the renderer's samples lie inside it; ``grid_sample`` with
-    ``align_corners=True`` agrees there)."""
+    ``align_corners=True`` agrees there). Corner ``k = 4 d + 2 h + w`` is the point offset by
+    ``(d, h, w)`` along (x, y, z) from the lowest."""
+    idx, w = _corners_by_corner(unit, dims)
+    return idx.t().contiguous(), w.t().contiguous()
+
+
+def _corners_by_corner(unit: torch.Tensor, dims) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`corners` laid out corner by corner: flat index ``[8, M]`` and weights ``[8, M]`` (each
+    row a contiguous run over the points, which keeps the products and gathers vectorised)."""
     X, Y, Z = (dims,) * 3 if isinstance(dims, int) else (int(n) for n in dims)
     top = unit.new_tensor([X - 1, Y - 1, Z - 1])
     pos = torch.minimum(((unit + 1) * (0.5 * top)).clamp_(min=0), top)
     base = torch.minimum(pos.floor(), top - 1)
-    frac = pos - base  # [M, 3] in [0, 1]
+    frac = (pos - base).t().contiguous()  # [3, M] in [0, 1]
     stride = torch.tensor([Y * Z, Z, 1], device=unit.device)
     flat0 = base.long() @ stride  # [M]
-    idx = flat0[:, None] + _CORNER_BITS.to(unit.device).long() @ stride  # [M, 8]
-    # corner (d, h, w) weighs wx[d] * wy[h] * wz[w] (in that order of products): an outer product
-    wx, wy, wz = torch.stack([1 - frac, frac], dim=1).unbind(-1)  # [M, 2] each: (1 - f, f) per axis
-    w = ((wx[:, :, None] * wy[:, None, :])[:, :, :, None] * wz[:, None, None, :]).reshape(-1, 8)  # [M, 8]
+    idx = flat0[None, :] + (_CORNER_BITS.to(unit.device).long() @ stride)[:, None]  # [8, M]
+    # corner (d, h, w) weighs wx[d] * wy[h] * wz[w], multiplied in that order
+    (fx, fy, fz), (gx, gy, gz) = frac, 1 - frac
+    xy = [gx * gy, gx * fy, fx * gy, fx * fy]
+    w = torch.stack([p * q for p in xy for q in (gz, fz)])  # [8, M]
     return idx, w
 
 

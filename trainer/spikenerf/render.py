@@ -84,7 +84,7 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.
     if idx.numel() == 0:
         zero = origins.new_zeros(n) + 0.0 * field.grid.sum()  # keeps the graph connected
         return (zero + background, zero) if far is None else (zero + background, zero, zero + far)
-    sigma, x = field.query(pts, (dirs if view_dirs is None else view_dirs)[ray_of])
+    sigma, x = field.query(pts, (dirs if view_dirs is None else view_dirs).index_select(0, ray_of))
     log_t = -(sigma * (step / field.ref_voxel)).clamp(max=30.0)  # log(1 - alpha) of each sample
     trans = torch.exp(_exclusive_segment_cumsum(log_t, ray_of, n))
     w = (1 - torch.exp(log_t)) * trans
@@ -157,10 +157,10 @@ def _occupied_samples(field, origins, dirs, step, jitter, broadcast: bool | None
         # is then dropped by ``inside``)
         pts = (origins[:, None, :] + t[..., None] * dirs[:, None, :]).view(-1, 3)
         idx = (inside & field.occupied(pts)).nonzero().squeeze(-1)
-        return idx, torch.div(idx, n_samp, rounding_mode="floor"), pts[idx]
+        return idx, torch.div(idx, n_samp, rounding_mode="floor"), pts.index_select(0, idx)
     idx = inside.nonzero().squeeze(-1)
     ray_of = torch.div(idx, n_samp, rounding_mode="floor")
-    pts = origins[ray_of] + t.view(-1)[idx, None] * dirs[ray_of]
+    pts = origins.index_select(0, ray_of) + t.view(-1)[idx, None] * dirs.index_select(0, ray_of)
     occ = field.occupied(pts)
     return idx[occ], ray_of[occ], pts[occ]
 
@@ -203,7 +203,7 @@ def _skip_blocks(field, origins, dirs, step, off, t_in, t_out, n_samp: int, seg:
     t0 = t_in[:, None] + step * (k0[None, :] + off[:, None])  # [n, n_seg]
     cand = (t0 < t_out[:, None]).view(-1).nonzero().squeeze(-1)  # stretches that start inside the box
     ray = torch.div(cand, n_seg, rounding_mode="floor")
-    pts = origins[ray] + t0.view(-1)[cand, None] * dirs[ray]
+    pts = origins.index_select(0, ray) + t0.view(-1)[cand, None] * dirs.index_select(0, ray)
     kept = field.coarse_occupied(pts)
     full = bool(kept.sum() > SKIP_MAX_KEPT * kept.numel())
     field._skip_probe = (field.occupancy, field.occupancy._version, full, 0)
@@ -216,11 +216,11 @@ def _skip_blocks(field, origins, dirs, step, off, t_in, t_out, n_samp: int, seg:
     inside = ((t < t_out[ray][:, None]) & (k < n_samp)).view(-1)
     # every sample of a kept stretch is tested (one past its ray's exit reads a clamped, real cell
     # and is then dropped by ``inside``), as in the broadcast pass
-    pts = (origins[ray][:, None, :] + t[..., None] * dirs[ray][:, None, :]).view(-1, 3)
+    pts = (origins.index_select(0, ray)[:, None, :] + t[..., None] * dirs.index_select(0, ray)[:, None, :]).view(-1, 3)
     sel = (inside & field.occupied(pts)).nonzero().squeeze(-1)
     which = torch.div(sel, seg, rounding_mode="floor")
     ray = ray[which]
-    return ray * n_samp + first[which] * seg + (sel - which * seg), ray, pts[sel]
+    return ray * n_samp + first[which] * seg + (sel - which * seg), ray, pts.index_select(0, sel)
 
 
 def _exclusive_segment_cumsum(v: torch.Tensor, seg: torch.Tensor, n_seg: int) -> torch.Tensor:
