@@ -34,7 +34,10 @@ import tempfile
 import time
 from pathlib import Path
 
+from bench_protocol import _commit  # (bench/ is this script's folder: on sys.path)
 from spikenerf.config import default_iters
+
+CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its iterations gain no more
 
 
 def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool) -> dict:
@@ -67,6 +70,17 @@ def run_child(args, resolution: int, iters: int, out: Path) -> dict:
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+def converged_runs(rows: list[dict]) -> dict:
+    """{resolution: the run with the fewest iterations whose object PSNR is within CONVERGED dB of the
+    same resolution's run with three times its iterations} (a resolution with no such pair: absent)."""
+    out = {}
+    for r in sorted(rows, key=lambda r: r["iters"]):
+        long = next((q for q in rows if q["resolution"] == r["resolution"] and q["iters"] == 3 * r["iters"]), None)
+        if r["resolution"] not in out and long is not None and long["psnr_object"] - r["psnr_object"] <= CONVERGED:
+            out[r["resolution"]] = r
+    return out
+
+
 def table(rows: list[dict]) -> None:
     print(f"{'run':>10} {'iters':>6} {'train s':>8} {'eval s':>7} {'views':>5} {'peak RSS MB':>11} "
           f"{'checkpoint MB':>13} {'PSNR':>6} {'object':>6} {'load at end':>11}")
@@ -79,13 +93,24 @@ def table(rows: list[dict]) -> None:
     print(f"training time ratio {b['resolution']}/{a['resolution']} ({b['iters']} / {a['iters']} iterations): {ratio:.2f} "
           f"(target <= 3: {'met' if ratio <= 3 else 'NOT met'}); evaluation time ratio per view: "
           f"{(b['eval_s'] / b['views']) / (a['eval_s'] / a['views']):.2f}")
-    for short in (a, b):
-        long = next((r for r in rows[2:] if r["resolution"] == short["resolution"]), None)
+    for r in sorted(rows, key=lambda r: (r["resolution"], r["iters"])):
+        long = next((q for q in rows if q["resolution"] == r["resolution"] and q["iters"] == 3 * r["iters"]), None)
         if long is not None:
-            gap = long["psnr_object"] - short["psnr_object"]
-            print(f"{short['resolution']} x {short['resolution']}: object PSNR at {long['iters']} minus at "
-                  f"{short['iters']} iterations: {gap:+.2f} dB (converged within 0.3 dB: "
-                  f"{'yes' if gap <= 0.3 else 'NO'})")
+            gap = long["psnr_object"] - r["psnr_object"]
+            print(f"{r['resolution']} x {r['resolution']}: object PSNR at {long['iters']} minus at "
+                  f"{r['iters']} iterations: {gap:+.2f} dB (converged within {CONVERGED} dB: "
+                  f"{'yes' if gap <= CONVERGED else 'NO'})")
+    conv = converged_runs(rows)
+    hi, lo = max(r["resolution"] for r in rows), min(r["resolution"] for r in rows)
+    if hi in conv:
+        c = conv[hi]
+        print(f"{hi} x {hi} converged at {c['iters']} iterations in {c['train_s']:.0f} s: {c['train_s'] / a['train_s']:.2f} "
+              f"times the {lo} x {lo} run of {a['iters']} iterations (target <= 3: "
+              f"{'met' if c['train_s'] <= 3 * a['train_s'] else 'NOT met'})"
+              + (f", {c['train_s'] / conv[lo]['train_s']:.2f} times the {lo} x {lo} run converged at {conv[lo]['iters']}"
+                 if lo in conv else f"; no converged {lo} x {lo} run among these"))
+    else:
+        print(f"no {hi} x {hi} run is shown converged (no run within {CONVERGED} dB of its 3 x run)")
     peak = max(r["peak_rss_mb"] for r in rows)
     print(f"peak memory {peak:.0f} MB (target < 4096: {'met' if peak < 4096 else 'NOT met'})")
 
@@ -99,6 +124,8 @@ def main() -> None:
     ap.add_argument("--out", type=Path, default=None, help="runs go here (default: a temporary folder)")
     ap.add_argument("--sparse", action="store_true", help="grids above 128^3 train with the lazy optimiser")
     ap.add_argument("--converge", action="store_true", help="also train both resolutions with 3 x their iterations")
+    ap.add_argument("--runs", default="", help="the runs instead, as RES:ITERS,... (the first two are the ratio's "
+                    "pair, e.g. 100:3000,400:9000,400:27000,100:9000,100:27000)")
     ap.add_argument("--json", type=Path, default=None, help="write the rows and load averages to this file")
     ap.add_argument("--table", type=Path, default=None, help="print the table of a saved --json file and stop")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
@@ -124,6 +151,8 @@ def main() -> None:
         plan = [(res, args.iters or default_iters(res, res)) for res in (100, 400)]
         if args.converge:
             plan += [(res, 3 * iters) for res, iters in reversed(plan)]
+        if args.runs:
+            plan = [tuple(int(v) for v in run.split(":")) for run in args.runs.split(",")]
         rows = []
         for res, iters in plan:
             rows.append(run_child(args, res, iters, base / f"run{res}_{iters}"))
@@ -135,7 +164,8 @@ def main() -> None:
     table(rows)
     if args.json:
         args.json.write_text(json.dumps({"dataset": args.dataset, "load_start": load0, "load_end": load1,
-                                         "omp_threads": os.environ.get("OMP_NUM_THREADS"), "rows": rows}, indent=1))
+                                         "omp_threads": os.environ.get("OMP_NUM_THREADS"), "commit": _commit(),
+                                         "rows": rows}, indent=1))
 
 
 if __name__ == "__main__":

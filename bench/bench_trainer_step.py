@@ -21,9 +21,13 @@ Usage::
     python bench/bench_trainer_step.py --reps 15  # steadier medians
     python bench/bench_trainer_step.py --only grid-step  # just table 3
     python bench/bench_trainer_step.py --run RUN [--run RUN2]  # only the trained fields' table (below)
+    python bench/bench_trainer_step.py --run RUN --step        # whole training steps, now against before
 
 4. ``--run RUN``: a trained run's field (its checkpoint): a training step's rendering and a held-out
    view, samples made in one pass against empty blocks skipped first (``render._skip_blocks``).
+5. ``--run RUN --step``: whole training steps on that field, the trainer's way now (corner reads that
+   add into the kept ``grid.grad``) against its way before 2026-11-25 (``grid_sample`` and autograd's
+   grid-sized gradients), interleaved on two copies of the field.
 """
 from __future__ import annotations
 
@@ -225,15 +229,77 @@ def trained_table(run: str, reps: int) -> None:
     print(f"load average {os.getloadavg()[0]:.2f} at end; outputs and gradients equal to the bit")
 
 
+def training_step_table(run: str, reps: int) -> None:
+    """A trained run's field: whole training steps (its rays, render, loss, prior, zero_grad, backward,
+    Adam) the trainer's way now -- corner reads adding into the kept ``grid.grad`` -- and the way it
+    was before 2026-11-25 -- reads through ``grid_sample``, the prior's block by slicing, autograd's
+    grid-sized gradients, ``zero_grad(set_to_none=True)`` -- on two copies of the field with their
+    own Adam, the same rays, interleaved. Prints the median wall and CPU time of each and their ratio,
+    and the largest difference of the two copies' grids after the steps (float rounding only)."""
+    import copy
+    import os
+
+    from spikenerf import train as T
+    from spikenerf.config import TrainConfig
+    from spikenerf.data import load_dataset
+    from spikenerf.methods import METHODS
+    from spikenerf.targets import build_targets
+
+    ck = T.load_checkpoint(os.path.join(run, "checkpoint.pt"), "cpu")
+    cfg = TrainConfig(**{k: tuple(v) if k == "upsample_at" else v for k, v in ck["config"].items()})
+    ds = load_dataset(cfg.dataset)
+    H, W = T._resolution(ds, cfg.resolution)
+    method = METHODS[cfg.method]
+    batch = T.Batch(build_targets(ds, method, H, W, progress=False, frames=cfg.frames, windows=cfg.windows,
+                                  maps_file=cfg.sensor_maps or None), torch.device("cpu"))
+    focal, bg = ds.camera(H, W), ds.background
+    fields = {way: T.field_from_checkpoint(ck, "cpu") for way in ("now", "before")}
+    opts = {way: T.make_optimizer(f, cfg) for way, f in fields.items()}
+    before = fields["before"]
+    before._read = lambda grid, points: M._trilinear(grid, before.normalise(points))  # grid_sample + autograd
+    block_read = M._BlockRead.apply
+
+    def step(way: str, it: int) -> None:
+        field, opt = fields[way], opts[way]
+        M._BlockRead.apply = block_read if way == "now" else (lambda g, box: g[(slice(None), slice(None)) + tuple(box)])
+        gen = T.iteration_generator(cfg.seed, it)
+        img, pix, jitter = batch.draw(cfg.batch_rays, gen)
+        o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
+        x, _ = R.render_rays(field, o, d, jitter, bg)
+        loss = T.method_loss(method, x, img, pix, batch, ds.intensity)[0] + cfg.tv_weight * field.tv_loss(gen)
+        opt.zero_grad(set_to_none=way == "before")
+        loss.backward()
+        opt.step()
+
+    times = {way: ([], []) for way in fields}
+    print(f"\n{run}: whole training steps, grid {fields['now'].dims}, {H} x {W}; torch threads "
+          f"{torch.get_num_threads()}; load average {os.getloadavg()[0]:.2f} at start")
+    for r in range(reps + 2):
+        for way in ("now", "before") if r % 2 else ("before", "now"):
+            w0, c0 = time.perf_counter(), time.process_time()
+            step(way, 100 + r)
+            if r >= 2:  # two warm-up steps each
+                times[way][0].append(time.perf_counter() - w0)
+                times[way][1].append(time.process_time() - c0)
+    M._BlockRead.apply = block_read
+    med = {way: [1000 * statistics.median(v) for v in times[way]] for way in times}
+    for way, label in (("before", "grid_sample, autograd's gradients"), ("now", "corner reads, gradient in place")):
+        print(f"{label:>36}: {med[way][0]:8.1f} ms wall, {med[way][1]:8.1f} ms CPU (median of {reps})")
+    diff = float((fields["now"].grid - fields["before"].grid).detach().abs().max())
+    print(f"{'before / now':>36}: {med['before'][0] / med['now'][0]:.2f} wall, {med['before'][1] / med['now'][1]:.2f} CPU; "
+          f"grids after {reps + 2} steps differ by at most {diff:.2e}; load average {os.getloadavg()[0]:.2f} at end")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--only", choices=["trilinear", "candidates", "grid-step"], default=None)
     ap.add_argument("--run", action="append", default=[], help="also time a trained run's field (its folder)")
+    ap.add_argument("--step", action="store_true", help="with --run: whole training steps, now against before")
     args = ap.parse_args()
     if args.run:
         for run in args.run:
-            trained_table(run, args.reps)
+            (training_step_table if args.step else trained_table)(run, args.reps)
         if args.only is None:
             return
     tables = {"trilinear": trilinear_table, "candidates": candidates_table, "grid-step": grid_step_table}
