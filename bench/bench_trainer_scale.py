@@ -19,6 +19,7 @@ Make the dataset first (a few minutes; keep it outside the repository)::
     python bench/bench_trainer_scale.py /tmp/scale/nerf_synthetic_lego_400_i64 [--iters N] [--eval-views 13]
         [--sparse]     # the lazy grid optimiser (off by default in the trainer)
         [--converge]   # also 3 x the iterations at both resolutions: is the 1 x run converged?
+        [--runs 100:3000,400:9000,400:27000]   # the runs instead (the first two: the ratio's pair)
         [--json FILE]  # the rows and the load averages, for the record
     python bench/bench_trainer_scale.py --table FILE   # the table of a saved --json file again
 """
@@ -142,9 +143,10 @@ def main() -> None:
         print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse)))
         return
     load0 = os.getloadavg()
+    plan_text = f"runs {args.runs}" if args.runs else f"{args.iters or 'the default'} iterations"
     print(f"load average at start: {' '.join(f'{x:.2f}' for x in load0)}; "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; "
-          f"{args.iters or 'the default'} iterations; "
+          f"{plan_text}; "
           f"{'lazy optimiser above 128^3' if args.sparse else 'dense Adam'}")
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         base = args.out or Path(tmp)

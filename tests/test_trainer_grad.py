@@ -104,3 +104,13 @@ def test_a_training_step_keeps_one_gradient_buffer_and_zeroes_it():
     loss(g, 1).backward()
     assert f.grid.grad.data_ptr() == first
     assert torch.allclose(f.grid.grad, g.grid.grad, atol=1e-6) and torch.allclose(f.sh.grad, g.sh.grad, atol=1e-6)
+
+
+def test_points_that_need_a_gradient_get_one():
+    """A caller that differentiates through the sample points (none in the trainer) reads through
+    grid_sample, whose gradient reaches the points."""
+    f = _field()
+    pts, dirs = _points(f, n=200)
+    pts.requires_grad_(True)
+    f.query(pts, dirs)[1].sum().backward()
+    assert pts.grad is not None and torch.count_nonzero(pts.grad) > 0 and f.grid.grad is not None

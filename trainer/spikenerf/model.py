@@ -139,7 +139,7 @@ class GridField(nn.Module):
         gradient added in place into ``grid.grad`` (dense mode, :class:`_CornerRead`) or recorded on
         the tape (sparse mode)."""
         train = torch.is_grad_enabled() and grid.requires_grad
-        if not train:
+        if not train or (points.requires_grad and not self.sparse):  # (corner reads give the points no gradient)
             return _trilinear(grid, self.normalise(points))
         if not self.sparse:
             return _CornerRead.apply(grid, *_corners_by_corner(self.unit(points), grid.shape[2:]))
