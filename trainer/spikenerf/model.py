@@ -462,8 +462,8 @@ def _corners_by_corner(unit: torch.Tensor, dims) -> tuple[torch.Tensor, torch.Te
     base = torch.minimum(pos.floor(), top - 1)
     frac = (pos - base).t().contiguous()  # [3, M] in [0, 1]
     stride = torch.tensor([Y * Z, Z, 1], device=unit.device)
-    flat0 = base.long() @ stride  # [M]
-    idx = flat0[None, :] + (_CORNER_BITS.to(unit.device).long() @ stride)[:, None]  # [8, M]
+    flat0 = (base.long() * stride).sum(-1)  # [M] (no integer matmul: CUDA has none)
+    idx = flat0[None, :] + (_CORNER_BITS.to(unit.device).long() * stride).sum(-1)[:, None]  # [8, M]
     # corner (d, h, w) weighs wx[d] * wy[h] * wz[w], multiplied in that order
     (fx, fy, fz), (gx, gy, gz) = frac, 1 - frac
     xy = [gx * gy, gx * fy, fx * gy, fx * fy]
