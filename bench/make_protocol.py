@@ -48,7 +48,10 @@ setting is chosen in this benchmark: every method runs with the trainer's defaul
 iteration count, which every row states. The trainer's default count follows the image size (3000
 at 100 x 100, 9000 at 400 x 400, chosen on the project's procedural lego: docs/trainer.md). @@ITERS
 The other defaults were chosen by earlier sessions, partly by scores on every 8th lego *train*
-view; the val views here were never used for any decision.
+view; the val views here were never used for any decision. At 400 x 400 the default 9000 iterations
+are not converged on the real lego: spikelik (rsir i64, first 25 val views) scores 25.83 dB of object
+PSNR at 9000 and 27.11 at 27000 iterations (bench/results/trainer_scale_20261125.json; docs/trainer.md),
+so every 400 x 400 row here compares methods at the same, unconverged budget.
 
 **Procedural scenes** (the paper's Table S2 shape, at the CI scale): chair, ficus, hotdog, materials
 and mic, made by `spikegen render --scene S --views 100,0,50 --resolution 100` (Blender, the camera
