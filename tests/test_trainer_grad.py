@@ -6,17 +6,13 @@ import torch.nn.functional as F
 from spikenerf.config import TrainConfig
 from spikenerf.model import GridField, _trilinear, _tv
 from spikenerf.train import make_optimizer
+from test_trainer_sparse import randomised
 
 
 def _field(seed=0):
     """A field on a box that is not a cube, with random grids (and SH)."""
-    f = GridField(grid_size=12, final_size=24, sh_degree=1, aabb=[[-1.0, -0.5, -0.8], [1.2, 0.6, 0.7]],
-                  dims=[14, 8, 11])
-    gen = torch.Generator().manual_seed(seed)
-    with torch.no_grad():
-        for p in f.grids():
-            p.normal_(generator=gen)
-    return f
+    return randomised(GridField(grid_size=12, final_size=24, sh_degree=1, aabb=[[-1.0, -0.5, -0.8], [1.2, 0.6, 0.7]],
+                                dims=[14, 8, 11]), seed)
 
 
 def _points(f, n=3000, seed=1):

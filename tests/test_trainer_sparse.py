@@ -13,7 +13,11 @@ from test_trainer_cli import _cfg, dataset  # noqa: F401 (the tiny sphere datase
 
 
 def _field(seed=0, size=12, sh_degree=1, features=0):
-    f = GridField(grid_size=size, final_size=2 * size, sh_degree=sh_degree, features=features)
+    return randomised(GridField(grid_size=size, final_size=2 * size, sh_degree=sh_degree, features=features), seed)
+
+
+def randomised(f, seed):
+    """The field with its grids drawn from a standard normal (seeded)."""
     gen = torch.Generator().manual_seed(seed)
     with torch.no_grad():
         for p in f.grids():
