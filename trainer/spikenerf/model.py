@@ -377,8 +377,8 @@ def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None) -> 
     box = tuple(slice(s, s + c) for s, c in zip(starts, b))
     if tape is None and torch.is_grad_enabled() and grid.requires_grad:
         sub = _BlockRead.apply(grid, box)  # its gradient added in place into grid.grad's block
-        return sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean()
-    sub = grid[(slice(None), slice(None)) + box]
+    else:
+        sub = grid[(slice(None), slice(None)) + box]
     if tape is not None and torch.is_grad_enabled():  # a leaf copy of the block; its voxels' flat index
         axes = [torch.arange(s, s + c, device=grid.device) for s, c in zip(starts, b)]
         idx = ((axes[0] * dims[1])[:, None, None] + axes[1][None, :, None]) * dims[2] + axes[2][None, None, :]
