@@ -71,12 +71,17 @@ def run_child(args, resolution: int, iters: int, out: Path) -> dict:
     return json.loads(res.stdout.strip().splitlines()[-1])
 
 
+def tripled(rows: list[dict], run: dict) -> dict | None:
+    """The run among ``rows`` at the same resolution with three times ``run``'s iterations, if any."""
+    return next((q for q in rows if q["resolution"] == run["resolution"] and q["iters"] == 3 * run["iters"]), None)
+
+
 def converged_runs(rows: list[dict]) -> dict:
     """{resolution: the run with the fewest iterations whose object PSNR is within CONVERGED dB of the
     same resolution's run with three times its iterations} (a resolution with no such pair: absent)."""
     out = {}
     for r in sorted(rows, key=lambda r: r["iters"]):
-        long = next((q for q in rows if q["resolution"] == r["resolution"] and q["iters"] == 3 * r["iters"]), None)
+        long = tripled(rows, r)
         if r["resolution"] not in out and long is not None and long["psnr_object"] - r["psnr_object"] <= CONVERGED:
             out[r["resolution"]] = r
     return out
@@ -95,7 +100,7 @@ def table(rows: list[dict]) -> None:
           f"(the target is for a converged run: below); evaluation time ratio per view: "
           f"{(b['eval_s'] / b['views']) / (a['eval_s'] / a['views']):.2f}")
     for r in sorted(rows, key=lambda r: (r["resolution"], r["iters"])):
-        long = next((q for q in rows if q["resolution"] == r["resolution"] and q["iters"] == 3 * r["iters"]), None)
+        long = tripled(rows, r)
         if long is not None:
             gap = long["psnr_object"] - r["psnr_object"]
             print(f"{r['resolution']} x {r['resolution']}: object PSNR at {long['iters']} minus at "
@@ -150,11 +155,12 @@ def main() -> None:
           f"{'lazy optimiser above 128^3' if args.sparse else 'dense Adam'}")
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         base = args.out or Path(tmp)
-        plan = [(res, args.iters or default_iters(res, res)) for res in (100, 400)]
-        if args.converge:
-            plan += [(res, 3 * iters) for res, iters in reversed(plan)]
         if args.runs:
             plan = [tuple(int(v) for v in run.split(":")) for run in args.runs.split(",")]
+        else:
+            plan = [(res, args.iters or default_iters(res, res)) for res in (100, 400)]
+            if args.converge:
+                plan += [(res, 3 * iters) for res, iters in reversed(plan)]
         rows = []
         for res, iters in plan:
             rows.append(run_child(args, res, iters, base / f"run{res}_{iters}"))

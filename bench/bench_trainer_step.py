@@ -236,7 +236,6 @@ def training_step_table(run: str, reps: int) -> None:
     grid-sized gradients, ``zero_grad(set_to_none=True)`` -- on two copies of the field with their
     own Adam, the same rays, interleaved. Prints the median wall and CPU time of each and their ratio,
     and the largest difference of the two copies' grids after the steps (float rounding only)."""
-    import copy
     import os
 
     from spikenerf import train as T
