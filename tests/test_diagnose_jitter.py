@@ -15,7 +15,7 @@ import pytest
 from spikegen.fidelity import synth
 from spikegen.fidelity.diagnose import diagnose
 from spikegen.fidelity.effects import QUANTISATION_TERMS, _quantisation_change
-from spikegen.sensor import simulate
+from spikegen.sensor import Sensor, simulate
 
 TOLERANCE = 0.2
 
@@ -91,3 +91,36 @@ def test_quantisation_change_is_that_of_whole_frame_intervals(mean, var):
     expected = float(np.sum(g * pdf) / np.sum(pdf)) - (mean % 1.0) * (1.0 - mean % 1.0)
     got = float(_quantisation_change(np.array([mean]), np.array([var]))[0])
     assert got == pytest.approx(expected, abs=1.0 / (math.pi ** 2 * QUANTISATION_TERMS) + 1e-6)
+
+
+
+def _car_like(shared_data, electrons: float, sigma: float, seed: int):
+    """A static recording at the real car's rates and length: the mean rates of the top-left
+    128 x 200 pixels of its 500 frames (mostly 0.15..0.3 spikes a frame) as the radiance at I = 256,
+    500 frames through the given temporal noise."""
+    car = np.load(shared_data / "real" / "car_500frames_250x400.npz")["arr_0"]
+    radiance = np.clip(car[:128, :200].mean(-1, dtype=np.float64), 0.002, 0.9)
+    sensor = Sensor(name="truth", electrons=electrons, threshold_jitter=sigma)
+    return simulate(radiance, 256.0, sensor, frames=500, seed=seed), radiance
+
+
+@pytest.mark.parametrize("seed", [77, 78])
+def test_jitter_read_back_beside_shot_noise_at_the_car_rates(shared_data, seed):
+    """The preset's noise (N_e 2.25e4, SD 0.0036; assets/calibrated.json) at the car's rates: read
+    against the noise-free model the jitter came out about 30 % low (0.0026 on seed 77: beside shot
+    noise the analytic terms miss part of what it does to whole-frame intervals); against the model
+    with the shot noise found (effects._temporal_effects) it is read back within 20 %. (It is
+    below the gate's size, so it is reported, not named.)"""
+    spikes, radiance = _car_like(shared_data, 2.25e4, 0.0036, seed)
+    jitter = diagnose(spikes, radiance, 256.0).effect("threshold_jitter")
+    assert jitter.parameters["sigma"] is not None
+    assert abs(jitter.parameters["sigma"] - 0.0036) <= TOLERANCE * 0.0036, (jitter.parameters, jitter.z)
+
+
+@pytest.mark.parametrize("seed", [77, 78])
+def test_shot_noise_at_the_car_rates_reads_no_jitter(shared_data, seed):
+    """Shot noise alone at the car's level and rates: the jitter's statistic is centred on zero
+    (against the noise-free model it read z = -3.1 on seed 77)."""
+    spikes, radiance = _car_like(shared_data, 2.25e4, 0.0, seed)
+    jitter = diagnose(spikes, radiance, 256.0).effect("threshold_jitter")
+    assert abs(jitter.z) < 3.0, (jitter.parameters, jitter.z)

@@ -366,7 +366,11 @@ def _temporal_effects(ctx: Context, fit: Fit, deterministic: Sensor) -> tuple[Ef
     ``lambda^2 (4/3 (isi_var_m - isi_var_s) - 1/3 (span_var_m - span_var_s))`` for MAX_SPAN = 4 and
     many intervals (:func:`_jitter_excess` has the finite-sample and quantisation terms): shot
     noise gives it 0, the jitter ``2 sigma^2``; pixels weighted by the inverse of its sampling
-    variance (JITTER_WEIGHT), standard error from its spread.
+    variance (JITTER_WEIGHT), standard error from its spread. The jitter's model streams (``ps``
+    in :func:`_jitter_excess`) are those of ``deterministic`` plus the shot noise of the first
+    estimate of ``1 / N_e`` (one more simulation, same seed), not of ``deterministic`` itself: beside
+    shot noise the analytic terms alone left the statistic biased (at the car's rates, 500 frames,
+    N_e 2.25e4: z -3.1 with no jitter, a true SD 0.0036 read as 0.0026; tests/test_diagnose_jitter.py).
     Both are independent from pixel to pixel; when the measured stream has a modulation shared
     by its pixels beyond the model's (:func:`_common_mode`), both streams' intervals are measured
     on their own population's clock (stats.population_clock), which removes it, first; then no
@@ -398,6 +402,14 @@ def _temporal_effects(ctx: Context, fit: Fit, deterministic: Sensor) -> tuple[Ef
     lam, n_isi, noisy = lam[ok], ctx.meas.n_isi[ok], noisy[ok]
     raw, _, model_level = _inverse_electrons(vm[ok] - vs[ok], vs[ok], lam, n_isi)
     raw = max(raw, 0.0)  # (the level of the other noise in the jitter's weights)
+    # the jitter's reference: the model with this shot noise, whose whole-frame intervals hold
+    # what shot noise does to the jitter's statistic beyond its analytic terms
+    ref, ref_inv = ps, 0.0
+    if raw > 0:
+        shot_model = deterministic.replace(electrons=1.0 / raw)
+        ref = (bands.fit_window_pass(ctx, shot_model, ctx.rows, clock_mask=mask) if common["removed"] else
+               bands.fit_window_pass(ctx, shot_model, ctx.rows, timing="variances"))["stats"]
+        ref_inv = raw
     # the model's own spread in the jitter's weights: its quantisation at its average (1/6 of a frame^2;
     # a pixel's own, which is small where its mean interval is near whole frames, goes with the
     # error of the quantisation terms and would bias the weighted mean), plus any variance beyond
@@ -405,7 +417,7 @@ def _temporal_effects(ctx: Context, fit: Fit, deterministic: Sensor) -> tuple[Ef
     spread = 1.0 / 6.0 + np.maximum(ps.isi_var[ok] - 0.25, 0.0)
     two_s2 = 0.0
     for _ in range(JITTER_ITERATIONS):  # the quantisation terms need the levels: from the last estimate
-        J = _jitter_excess(meas, ps, ctx.meas.isi_mean, raw, two_s2)[ok]
+        J = _jitter_excess(meas, ref, ctx.meas.isi_mean, raw, two_s2, ref_inv)[ok]
         two_s2, two_se, _ = _inverse_electrons(J, spread, lam, n_isi, JITTER_WEIGHT, other=raw)
     s2 = two_s2 / 2.0
     sigma = math.sqrt(s2) if s2 > 0 else None
@@ -438,7 +450,8 @@ def _temporal_effects(ctx: Context, fit: Fit, deterministic: Sensor) -> tuple[Ef
     return shot, jitter
 
 
-def _jitter_excess(pm: stats.PixelStats, ps: stats.PixelStats, mean_isi, inv: float, two_s2: float) -> np.ndarray:
+def _jitter_excess(pm: stats.PixelStats, ps: stats.PixelStats, mean_isi, inv: float, two_s2: float,
+                   ref_inv: float = 0.0) -> np.ndarray:
     """``[P]`` frames**2: the non-accumulating interval variance ``J = 2 sigma^2 / lambda^2`` of each
     pixel, from the measured (``pm``) minus the model's (``ps``) variance of one interval (``dI``)
     and of a span of M = MAX_SPAN intervals (``dS``). Shot noise of variance ``v`` per interval and
@@ -454,14 +467,19 @@ def _jitter_excess(pm: stats.PixelStats, ps: stats.PixelStats, mean_isi, inv: fl
     model's by ``g(mean)``: ``c = sum_k cos(2 pi k mean)(1 - exp(-2 (pi k)^2 var(D))) / (pi k)^2``
     (:func:`_quantisation_change`), with ``var(D)`` from the current levels ``inv = 1 / N_e`` and
     ``two_s2 = 2 sigma^2`` over ``lambda^2`` at ``mean = mean_isi`` (``M mean_isi`` for spans).
+    Against a model with shot noise ``ref_inv = 1 / N_e`` of its own, the quantisation change is
+    taken relative to that model's (``c`` at the current levels minus ``c`` at ``ref_inv``).
     Solved for ``J`` pixel by pixel (NaN where unknown)."""
     M = stats.MAX_SPAN
     n = pm.n_isi.astype(np.float64)
     m = np.maximum(n - M + 1, 1.0)
     lam2 = 1.0 / np.maximum(mean_isi, 1.0) ** 2
     inv, two_s2 = max(inv, 0.0), max(two_s2, 0.0)
-    dI = pm.isi_var - ps.isi_var - _quantisation_change(mean_isi, (inv + two_s2) * lam2)
-    dS = pm.span_var - ps.span_var - _quantisation_change(M * mean_isi, (M * inv + two_s2) * lam2)
+    ref_inv = max(ref_inv, 0.0)
+    dI = pm.isi_var - ps.isi_var - (_quantisation_change(mean_isi, (inv + two_s2) * lam2)
+                                    - _quantisation_change(mean_isi, ref_inv * lam2))
+    dS = pm.span_var - ps.span_var - (_quantisation_change(M * mean_isi, (M * inv + two_s2) * lam2)
+                                      - _quantisation_change(M * mean_isi, M * ref_inv * lam2))
     with np.errstate(all="ignore"):  # (NaN or inf where a pixel has no intervals: not used)
         a12, a21, a22 = 1.0 + 1.0 / n, M * (1.0 - (M - 1) / m), 1.0 + 1.0 / m
         return (dS - a21 * dI) / (a22 - a21 * a12)
