@@ -122,5 +122,8 @@ def test_shot_noise_at_the_car_rates_reads_no_jitter(shared_data, seed):
     """Shot noise alone at the car's level and rates: the jitter's statistic is centred on zero
     (against the noise-free model it read z = -3.1 on seed 77)."""
     spikes, radiance = _car_like(shared_data, 2.25e4, 0.0, seed)
-    jitter = diagnose(spikes, radiance, 256.0).effect("threshold_jitter")
+    result = diagnose(spikes, radiance, 256.0)
+    jitter = result.effect("threshold_jitter")
     assert abs(jitter.z) < 3.0, (jitter.parameters, jitter.z)
+    # the same noise in every row: unlike the real car's background (interval_variance_per_row)
+    assert "interval_variance_per_row" not in [u["statistic"] for u in result.unexplained], result.unexplained

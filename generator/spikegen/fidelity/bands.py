@@ -23,7 +23,7 @@ import numpy as np
 from ..sensor import CHUNK_ROWS, Sensor, simulate
 from . import heldout, stats
 from .records import SIM_SEED, SIM_THREADS, Context
-from .unexplained import checks_from_parts
+from .unexplained import checks_from_parts, interval_fields
 
 BAND_BYTES = 1 << 26  # bytes of one band of a dense stream [T, rows, W] (64 MiB) when no band is asked for
 
@@ -345,6 +345,7 @@ class _Accumulators:
 
     def unexplained(self, mask, H, W) -> list:
         cat = {k: (np.concatenate(v) if v else np.zeros(0)) for k, v in self.lists.items()}
+        cat["isi"] = interval_fields(self._stats("m"), self._stats("s"))
         return checks_from_parts(self.fields["c"], self.fields["s"], self.fields["var"], mask, H, W,
                                  self.frame, self.fields["var4"], cat, self.hist["m_mask"], self.hist["s_mask"])
 

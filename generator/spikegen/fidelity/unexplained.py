@@ -23,6 +23,8 @@ CHECKS = {
     "rate_per_frame": "RMS relative error of the population count in windows of 4 frames (gate 1 %)",
     "count_dispersion": "relative excess of per-pixel count variance in windows of 16 frames (gate 25 %)",
     "serial_correlation": "difference of the mean lag-1 correlation of consecutive intervals (gate 0.1)",
+    "interval_variance_per_row": ("RMS over bands of rows of the band's mean interval variance beyond the model's, "
+                                  "x rate^2, about its mean over all bands (gate 5e-5)"),
     "isi_distribution": "total-variation distance of the pooled interval histograms (gate 0.1)",
 }
 
@@ -81,6 +83,39 @@ def _dispersion_check(d: np.ndarray, s_var: np.ndarray) -> list:
     return [_entry("count_dispersion", rel, z, 0.25)] if z > Z_MIN and rel > 0.25 else []
 
 
+ROW_BANDS = 16  # bands of rows of interval_variance_per_row (at least 4 rows each)
+ROW_GATE = 5e-5  # its size gate: about half the calibrated preset's interval variance (x rate^2) beyond the ideal's
+
+
+def _interval_row_check(isi: dict, mask, H: int, W: int) -> list:
+    """A temporal noise that differs from one band of rows to another: per pixel of the mask with
+    >= 8 held-out intervals in both streams, ``(isi_var measured - isi_var simulated) / isi_mean^2``
+    (the model's interval variance beyond its own, a relative variance: x rate^2), averaged over
+    each of ROW_BANDS bands of rows (standard errors from each band's spread); listed when the
+    bands' means scatter about their weighted mean beyond their errors (chi-square excess over
+    ``Z_MIN``) and their RMS scatter passes ROW_GATE. A temporal noise the model lacks but that
+    is the same in every row shifts every band alike and is not listed here."""
+    d = (isi["m_var"] - isi["s_var"]) / isi["s_mean"] ** 2
+    ok = mask & (isi["m_n"] >= 8) & (isi["s_n"] >= 8) & np.isfinite(d)
+    rows = max(4, H // ROW_BANDS)
+    band = np.repeat(np.arange(H) // rows, W)
+    means, ses = [], []
+    for b in np.unique(band[ok]):
+        x = d[ok & (band == b)]
+        if x.size >= 20:
+            means.append(x.mean())
+            ses.append(max(x.std(ddof=1) / math.sqrt(x.size), 1e-12))
+    if len(means) < 4:
+        return []
+    means, ses = np.array(means), np.array(ses)
+    w = 1.0 / ses ** 2
+    centre = float((w * means).sum() / w.sum())
+    k = len(means)
+    excess = (float((((means - centre) / ses) ** 2).sum()) - (k - 1)) / math.sqrt(2 * (k - 1))
+    rms = stats._rms(means - centre)
+    return [_entry("interval_variance_per_row", rms, excess, ROW_GATE)] if excess > Z_MIN and rms > ROW_GATE else []
+
+
 def _interval_checks(rm, rs, hm, hs) -> list:
     """Serial correlation of consecutive intervals (``rm, rs``: those of the measured and the
     simulated pixels of the mask with enough noisy intervals) and the pooled interval histograms
@@ -120,16 +155,25 @@ def unexplained(meas: np.ndarray, sim_full: np.ndarray, mask: np.ndarray, static
     keep = np.flatnonzero(mask)
     hm, hs = (stats.isi_histogram(p.isi_values[np.isin(stats.interval_pixels(x), keep)], Th)
               for x, p in ((meas, pm), (sim, ps)))
+    lists["isi"] = interval_fields(pm, ps)
     return checks_from_parts(c, s, var, mask, H, W, frame, heldout.count_variance(sim_full, 4, True), lists, hm, hs)
+
+
+def interval_fields(pm: stats.PixelStats, ps: stats.PixelStats) -> dict:
+    """What :func:`_interval_row_check` takes of the held-out frames' pixel statistics, measured
+    (``pm``) and simulated (``ps``)."""
+    return {"m_var": pm.isi_var, "s_var": ps.isi_var, "s_mean": ps.isi_mean, "m_n": pm.n_isi, "s_n": ps.n_isi}
 
 
 def checks_from_parts(c, s, var, mask, H: int, W: int, frame: dict, var4, lists: dict, hm, hs) -> list:
     """:func:`unexplained` from its parts: whole held-out counts ``c, s`` and their predictive
     variance ``var`` (``[P]`` each), the windows of 4 frames (:func:`_frame_check`), the dispersion
     of windows of 16 frames and the serial correlations (``lists``: ``"disp_d"``, ``"disp_s"``,
-    ``"rm"``, ``"rs"``) and the mask's interval histograms."""
+    ``"rm"``, ``"rs"``; ``"isi"``: :func:`interval_fields`, for the bands of rows) and the mask's
+    interval histograms."""
     found = _rate_checks(c, s, var, mask, H, W)
     found += _frame_check(frame, var4, mask)
     found += _dispersion_check(lists["disp_d"], lists["disp_s"])
     found += _interval_checks(lists["rm"], lists["rs"], hm, hs)
+    found += _interval_row_check(lists["isi"], mask, H, W)
     return found
