@@ -1,6 +1,6 @@
 """The trainer at 100 x 100 and at 400 x 400, side by side on the same data (issue 13).
 
-Trains ``spikelik`` on one spike dataset twice -- at 100 x 100 (``--resolution 100``: the
+Trains ``spikelik`` (``--method``: another) on one spike dataset twice -- at 100 x 100 (``--resolution 100``: the
 spike counts block-averaged 4 x 4) and at 400 x 400 -- each in its own process (so that each
 run's peak memory is its own), evaluates both on the held-out views, and prints a table: wall
 time of training and of evaluation, the time ratio 400/100, peak memory (RSS), checkpoint
@@ -20,6 +20,7 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--sparse]     # the lazy grid optimiser (off by default in the trainer)
         [--converge]   # also 3 x the iterations at both resolutions: is the 1 x run converged?
         [--runs 100:3000,400:9000,400:27000]   # the runs instead (the first two: the ratio's pair)
+        [--method oracle]   # another method (default spikelik)
         [--json FILE]  # the rows and the load averages, for the record
     python bench/bench_trainer_scale.py --table FILE   # the table of a saved --json file again
 """
@@ -41,7 +42,8 @@ from spikenerf.config import default_iters
 CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its iterations gain no more
 
 
-def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool) -> dict:
+def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool,
+          method: str = "spikelik") -> dict:
     """Train and evaluate one run in this process; the figures as a dict."""
     from spikenerf.config import TrainConfig
     from spikenerf.eval import evaluate
@@ -49,14 +51,14 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
 
     # --sparse: the lazy optimiser for grids above 128^3 (the 400 x 400 run's final grid)
     lazy = {"lazy_above": 128 ** 3} if sparse else {}
-    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device="cpu", **lazy)
+    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device="cpu", method=method, **lazy)
     t0 = time.perf_counter()
     ck = train(cfg, out, progress=False, log=lambda m: None)
     t_train = time.perf_counter() - t0
     t0 = time.perf_counter()
     m = evaluate(out, device="cpu", progress=False, max_views=eval_views)
     t_eval = time.perf_counter() - t0
-    return {"resolution": resolution, "iters": iters, "train_s": t_train, "eval_s": t_eval, "views": m["views"],
+    return {"method": method, "resolution": resolution, "iters": iters, "train_s": t_train, "eval_s": t_eval, "views": m["views"],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "checkpoint_mb": ck.stat().st_size / 1e6, "psnr": m["psnr"], "psnr_object": m["psnr_object"]}
 
@@ -64,7 +66,7 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
 def run_child(args, resolution: int, iters: int, out: Path) -> dict:
     cmd = [sys.executable, __file__, args.dataset, "--iters", str(iters), "--child", str(resolution),
            "--out", str(out)] + (["--eval-views", str(args.eval_views)] if args.eval_views else []) + \
-          (["--sparse"] if args.sparse else [])
+          (["--sparse"] if args.sparse else []) + ["--method", args.method]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         sys.exit(f"the {resolution} x {resolution} run ({iters} iterations) failed: {res.stderr.strip().splitlines()[-1:]}")
@@ -132,26 +134,30 @@ def main() -> None:
     ap.add_argument("--converge", action="store_true", help="also train both resolutions with 3 x their iterations")
     ap.add_argument("--runs", default="", help="the runs instead, as RES:ITERS,... (the first two are the ratio's "
                     "pair, e.g. 100:3000,400:9000,400:27000,100:9000,100:27000)")
+    ap.add_argument("--method", default="spikelik", help="the trainer's --method (oracle: the same field fitted to "
+                    "the ground-truth images, what the field and its optimisation reach without the spikes' noise)")
     ap.add_argument("--json", type=Path, default=None, help="write the rows and load averages to this file")
     ap.add_argument("--table", type=Path, default=None, help="print the table of a saved --json file and stop")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     args = ap.parse_args()
     if args.table:
         saved = json.loads(args.table.read_text())
-        print(f"{saved['dataset']}; OMP_NUM_THREADS={saved['omp_threads']}; load average at start "
+        print(f"{saved['dataset']}; method {saved['rows'][0].get('method', 'spikelik')}; "
+              f"OMP_NUM_THREADS={saved['omp_threads']}; load average at start "
               f"{' '.join(f'{x:.2f}' for x in saved['load_start'])}, at end {' '.join(f'{x:.2f}' for x in saved['load_end'])}")
         table(saved["rows"])
         return
     if not args.dataset:
         ap.error("a dataset is needed (or --table FILE)")
     if args.child:
-        print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse)))
+        print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse,
+                               args.method)))
         return
     load0 = os.getloadavg()
     plan_text = f"runs {args.runs}" if args.runs else f"{args.iters or 'the default'} iterations"
     print(f"load average at start: {' '.join(f'{x:.2f}' for x in load0)}; "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; "
-          f"{plan_text}; "
+          f"{plan_text}; method {args.method}; "
           f"{'lazy optimiser above 128^3' if args.sparse else 'dense Adam'}")
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         base = args.out or Path(tmp)

@@ -51,7 +51,9 @@ The other defaults were chosen by earlier sessions, partly by scores on every 8t
 view; the val views here were never used for any decision. At 400 x 400 the default 9000 iterations
 are not converged on the real lego: spikelik (rsir i64, first 25 val views) scores 25.83 dB of object
 PSNR at 9000 and 27.11 at 27000 iterations (bench/results/trainer_scale_20261125.json; docs/trainer.md),
-so every 400 x 400 row here compares methods at the same, unconverged budget.
+so every 400 x 400 row here compares methods at the same, unconverged budget. The oracle (ground-truth
+images) gains the same from 9000 to 27000 iterations there (26.66 to 27.94;
+bench/results/trainer_scale_oracle_20261126.json): the budget holds back the field, spike-fed or not.
 
 **Procedural scenes** (the paper's Table S2 shape, at the CI scale): chair, ficus, hotdog, materials
 and mic, made by `spikegen render --scene S --views 100,0,50 --resolution 100` (Blender, the camera
