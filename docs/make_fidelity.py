@@ -110,7 +110,9 @@ def estimate_electrons(real, results):
     shift = drift.fit_drift(low, 0, 8).shift()
     change = drift.rate_change(drift.expected_rates(drift.stabilised_mean(low, shift), shift))
     low_mask = (stats.pixel_stats(low).n_isi >= MIN_INTERVALS) & (change < MOTION_LIMIT)
-    fits = {"car": drift.matched_shot_noise(car, _static_mask(car)),
+    car_static = _static_mask(car)
+    results["car_static"] = car_static  # (study_car_bands splits it into bands of rows)
+    fits = {"car": drift.matched_shot_noise(car, car_static),
             "low light": drift.matched_shot_noise(low, low_mask)}
     w = {k: 1.0 / f.inverse_se ** 2 for k, f in fits.items()}
     inv = sum(w[k] * f.inverse for k, f in fits.items()) / sum(w.values())
@@ -122,7 +124,7 @@ def estimate_electrons(real, results):
     results["matched_electrons"] = 1.0 / inv
     # the preset: shot noise and threshold jitter fitted together to both recordings (the
     # intervals' variance and lag-1 autocovariance), and the shot-noise-only fit checked alike
-    recordings = {"car": (car, _static_mask(car).reshape(-1)), "low light": (low, low_mask.reshape(-1))}
+    recordings = {"car": (car, car_static.reshape(-1)), "low light": (low, low_mask.reshape(-1))}
     data = drift.timing_data(recordings)  # the references and measured statistics, for both
     timing = drift.matched_timing_noise(recordings, data=data)
     results["timing"] = timing
@@ -310,7 +312,7 @@ def study_car_bands(real, md, results):
 
     car = read_spikes(real / "car_500frames_250x400.npz")
     T, H, W = car.shape
-    static = _static_mask(car).reshape(H, W)
+    static = results["car_static"].reshape(H, W)
     e, jit = results["electrons"], results["jitter"]
     rows, total, parts = [], 0.0, []
     for b in range(CAR_BANDS):
@@ -337,7 +339,6 @@ def study_car_bands(real, md, results):
     top = max(parts, key=lambda q: q[2] * q[3][0])
     positive = [q for q in parts if q[3][1] > 3 * math.sqrt(q[4][1, 1])]
     rest_cov = (cov_all - top[2] * top[3][1]) / (n_all - top[2])
-    results["car_bands"] = {"chi2": total, "dof": dof, "p": p}
     md += ["## The car's background, row band by row band", "",
            f"The preset's joint fit pools the car's static background. One sensor has one temporal noise in every "
            f"row; a scene need not. The same statistics and fit (`drift.matched_timing_noise`) on each of "

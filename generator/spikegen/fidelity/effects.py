@@ -387,7 +387,7 @@ def _temporal_effects(ctx: Context, fit: Fit, deterministic: Sensor) -> tuple[Ef
     if common["removed"]:
         clock = stats.clock_of(bands.population_signal(ctx.spikes, mask, ctx.rows, 0, ctx.Tf))
         meas = bands.pixel_stats(ctx.spikes, ctx.rows, 0, ctx.Tf, clock)
-        ps = bands.fit_window_pass(ctx, deterministic, ctx.rows, clock_mask=mask)["stats"]
+        ps = _window_stats(ctx, deterministic, mask, on_clock=True)
     noisy = meas.isi_var >= 2.0  # the same estimator for both streams, pixel by pixel
     vm, vs = stats.excess_interval_var(meas, noisy), stats.excess_interval_var(ps, noisy)
     lam = rate_from_interval(ctx.meas.isi_mean, deterministic.refractory_frames)
@@ -406,9 +406,7 @@ def _temporal_effects(ctx: Context, fit: Fit, deterministic: Sensor) -> tuple[Ef
     # what shot noise does to the jitter's statistic beyond its analytic terms
     ref, ref_inv = ps, 0.0
     if raw > 0:
-        shot_model = deterministic.replace(electrons=1.0 / raw)
-        ref = (bands.fit_window_pass(ctx, shot_model, ctx.rows, clock_mask=mask) if common["removed"] else
-               bands.fit_window_pass(ctx, shot_model, ctx.rows, timing="variances"))["stats"]
+        ref = _window_stats(ctx, deterministic.replace(electrons=1.0 / raw), mask, on_clock=common["removed"])
         ref_inv = raw
     # the model's own spread in the jitter's weights: its quantisation at its average (1/6 of a frame^2;
     # a pixel's own, which is small where its mean interval is near whole frames, goes with the
@@ -448,6 +446,15 @@ def _temporal_effects(ctx: Context, fit: Fit, deterministic: Sensor) -> tuple[Ef
     if shot.detected and not jitter.detected and inv / max(two_se, 1e-15) < GATES["threshold_jitter"][1]:
         jitter = replace(jitter, note="; ".join(filter(None, [jitter.note, CONFUSED_NOTE.format(z=inv / max(two_se, 1e-15))])))
     return shot, jitter
+
+
+def _window_stats(ctx: Context, sensor: Sensor, mask: np.ndarray, on_clock: bool) -> stats.PixelStats:
+    """The interval statistics of ``sensor``'s simulated fit window, measured on the population clock
+    of the pixels of ``mask`` if ``on_clock`` (as the measured stream's when a shared modulation was
+    removed), else on frames (the variances only)."""
+    if on_clock:
+        return bands.fit_window_pass(ctx, sensor, ctx.rows, clock_mask=mask)["stats"]
+    return bands.fit_window_pass(ctx, sensor, ctx.rows, timing="variances")["stats"]
 
 
 def _jitter_excess(pm: stats.PixelStats, ps: stats.PixelStats, mean_isi, inv: float, two_s2: float,

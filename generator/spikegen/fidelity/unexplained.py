@@ -97,17 +97,16 @@ def _interval_row_check(isi: dict, mask, H: int, W: int) -> list:
     is the same in every row shifts every band alike and is not listed here."""
     d = (isi["m_var"] - isi["s_var"]) / isi["s_mean"] ** 2
     ok = mask & (isi["m_n"] >= 8) & (isi["s_n"] >= 8) & np.isfinite(d)
-    rows = max(4, H // ROW_BANDS)
-    band = np.repeat(np.arange(H) // rows, W)
-    means, ses = [], []
-    for b in np.unique(band[ok]):
-        x = d[ok & (band == b)]
-        if x.size >= 20:
-            means.append(x.mean())
-            ses.append(max(x.std(ddof=1) / math.sqrt(x.size), 1e-12))
-    if len(means) < 4:
+    band = np.repeat(np.arange(H) // max(4, H // ROW_BANDS), W)[ok]
+    x = d[ok]
+    n = np.bincount(band).astype(np.float64)
+    use = n >= 20
+    if use.sum() < 4:
         return []
-    means, ses = np.array(means), np.array(ses)
+    n = n[use]
+    means = np.bincount(band, weights=x)[use] / n
+    sq = np.bincount(band, weights=x * x)[use]
+    ses = np.maximum(np.sqrt(np.maximum(sq - n * means ** 2, 0.0) / (n - 1) / n), 1e-12)
     w = 1.0 / ses ** 2
     centre = float((w * means).sum() / w.sum())
     k = len(means)
