@@ -2,7 +2,8 @@
 
     python bench/bench_protocol.py --resolution 100 --sensors rsir --intensities 64 \
         --methods spikelik,spikenerf-paper,tfp32 --seeds 0,1,2
-    python bench/bench_protocol.py --resolution 400 --device cuda          # the paper's scale
+    python bench/bench_protocol.py --resolution 400 --device cuda \
+        --results bench/results/protocol_gpu.jsonl                         # the paper's scale, on a GPU
     python bench/make_protocol.py                                          # PROTOCOL.md from the results
 
 Per data set, sensor and intensity: ``spikegen convert`` (the real lego: its 100 train views are
@@ -73,12 +74,13 @@ def dataset(data: str, sensor: str, intensity: int, args) -> Path:
         folder = root / f"{LEGO.name}_i{intensity}"
         if not (folder / "manifest.json").is_file():
             _run(["spikegen", "convert", str(LEGO), "--intensity", str(intensity), "--out", str(root),
-                  "--sensor", sensor, "--resolution", str(args.resolution)])
+                  "--sensor", sensor, "--resolution", str(args.resolution), "--workers", str(args.workers)])
         return folder
     folder = root / f"{data}_i{intensity}"
     if not (folder / "manifest.json").is_file():
         _run(["spikegen", "render", "--scene", data, "--intensity", str(intensity), "--out", str(root),
-              "--sensor", sensor, "--resolution", str(args.resolution), "--views", args.scene_views])
+              "--sensor", sensor, "--resolution", str(args.resolution), "--views", args.scene_views,
+              "--workers", str(args.workers)])
     return folder
 
 
@@ -129,10 +131,10 @@ def row_key(row: dict) -> tuple:
     return tuple(row.get(k, OLD_FIELD) if k == "field" else sensor_name(row) if k == "sensor" else row[k] for k in KEY)
 
 
-def done_keys() -> set:
-    if not RESULTS.is_file():
+def done_keys(results: Path = RESULTS) -> set:
+    if not results.is_file():
         return set()
-    return {row_key(json.loads(line)) for line in RESULTS.read_text().splitlines() if line.strip()}
+    return {row_key(json.loads(line)) for line in results.read_text().splitlines() if line.strip()}
 
 
 def run_one(folder: Path, cell: dict, args) -> dict:
@@ -152,7 +154,7 @@ def run_one(folder: Path, cell: dict, args) -> dict:
     m = json.loads((run / "metrics.json").read_text())
     cfg = json.loads((run / "config.json").read_text())
     per_view = m.pop("per_view")
-    return {**cell, "device": cfg["device_used"], "train_seconds": m["train_seconds"],
+    return {**cell, "device": cfg["device_used"], **_gpu(cfg["device_used"]), "train_seconds": m["train_seconds"],
             "wall_seconds": round(wall, 1), "load_average": [round(load0, 2), round(os.getloadavg()[0], 2)],
             "views_from": m.get("views_from"), "metrics": {k: v for k, v in m.items() if _metric(k)},
             "per_view": [{k: v for k, v in r.items() if k == "view" or _metric(k)} for r in per_view],
@@ -169,6 +171,14 @@ def _checkpoint_iteration(run: Path) -> int | None:
         return None
     import torch
     return int(torch.load(ckpt, map_location="cpu", weights_only=False)["iteration"])
+
+
+def _gpu(device: str) -> dict:
+    """The GPU a CUDA run used, as ``{"gpu": name}`` (empty for a CPU run)."""
+    if not device.startswith("cuda"):
+        return {}
+    import torch
+    return {"gpu": torch.cuda.get_device_name(torch.device(device))}
 
 
 def _metric(key: str) -> bool:
@@ -211,22 +221,26 @@ def main() -> None:
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
     ap.add_argument("--device", default="auto")
+    ap.add_argument("--workers", type=int, default=1, help="local processes that make a dataset (spikegen --workers; "
+                    "every view carries its own seed, so the bytes do not depend on it)")
     ap.add_argument("--out", type=Path, default=REPO / "bench_out" / "protocol")
+    ap.add_argument("--results", type=Path, default=RESULTS, help="the results file rows are appended to (GPU runs: "
+                    "bench/results/protocol_gpu.jsonl)")
     args = ap.parse_args()
     args.data, args.sensors, args.methods = (v.split(",") for v in (args.data, args.sensors, args.methods))
     args.intensities, args.seeds = ([int(v) for v in s.split(",")] for s in (args.intensities, args.seeds))
     unknown = [m for m in args.methods if m not in KNOWLEDGE]
     if unknown or ("lego" in args.data and not LEGO.is_dir()):
         sys.exit(f"unknown methods {unknown}" if unknown else f"{LEGO} not found: the real lego is needed")
-    done = done_keys()
+    done = done_keys(args.results)
     models = {s: sensor_model(s) for s in args.sensors}
-    RESULTS.parent.mkdir(parents=True, exist_ok=True)
+    args.results.parent.mkdir(parents=True, exist_ok=True)
     for data, sensor, i, cell in cells(args):
         cell["sensor_model"] = models[sensor]
         if row_key(cell) in done:
             continue
         row = run_one(dataset(data, sensor, i, args), cell, args)
-        with RESULTS.open("a") as fh:
+        with args.results.open("a") as fh:
             fh.write(json.dumps(row) + "\n")
         print(f"  {data} {sensor} i{i} {cell['method']} seed {cell['seed']}: PSNR {row['metrics']['psnr']:.2f} / "
               f"object {row['metrics']['psnr_object']:.2f}, train {row['train_seconds']:.0f} s", flush=True)

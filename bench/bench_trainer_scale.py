@@ -22,6 +22,7 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--runs 100:3000,400:9000,400:27000]   # the runs instead (the first two: the ratio's pair)
         [--method oracle]   # another method (default spikelik)
         [--json FILE]  # the rows and the load averages, for the record
+        [--device cuda]  # train and evaluate on the GPU (its name and peak GPU memory join the rows)
     python bench/bench_trainer_scale.py --table FILE   # the table of a saved --json file again
 """
 from __future__ import annotations
@@ -43,7 +44,7 @@ CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its it
 
 
 def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool,
-          method: str = "spikelik") -> dict:
+          method: str = "spikelik", device: str = "cpu") -> dict:
     """Train and evaluate one run in this process; the figures as a dict."""
     from spikenerf.config import TrainConfig
     from spikenerf.eval import evaluate
@@ -51,14 +52,19 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
 
     # --sparse: the lazy optimiser for grids above 128^3 (the 400 x 400 run's final grid)
     lazy = {"lazy_above": 128 ** 3} if sparse else {}
-    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device="cpu", method=method, **lazy)
+    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device=device, method=method, **lazy)
     t0 = time.perf_counter()
     ck = train(cfg, out, progress=False, log=lambda m: None)
     t_train = time.perf_counter() - t0
     t0 = time.perf_counter()
-    m = evaluate(out, device="cpu", progress=False, max_views=eval_views)
+    m = evaluate(out, device=device, progress=False, max_views=eval_views)
     t_eval = time.perf_counter() - t0
-    return {"method": method, "resolution": resolution, "iters": iters, "train_s": t_train, "eval_s": t_eval, "views": m["views"],
+    gpu = {}
+    if device == "cuda":  # the GPU's name and the most memory torch held on it (training and evaluation)
+        import torch
+        gpu = {"gpu": torch.cuda.get_device_name(), "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2 ** 20}
+    return {"method": method, "resolution": resolution, "iters": iters, "device": device, **gpu,
+            "train_s": t_train, "eval_s": t_eval, "views": m["views"],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "checkpoint_mb": ck.stat().st_size / 1e6, "psnr": m["psnr"], "psnr_object": m["psnr_object"]}
 
@@ -66,7 +72,7 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
 def run_child(args, resolution: int, iters: int, out: Path) -> dict:
     cmd = [sys.executable, __file__, args.dataset, "--iters", str(iters), "--child", str(resolution),
            "--out", str(out)] + (["--eval-views", str(args.eval_views)] if args.eval_views else []) + \
-          (["--sparse"] if args.sparse else []) + ["--method", args.method]
+          (["--sparse"] if args.sparse else []) + ["--method", args.method, "--device", args.device]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         sys.exit(f"the {resolution} x {resolution} run ({iters} iterations) failed: {res.stderr.strip().splitlines()[-1:]}")
@@ -121,6 +127,8 @@ def table(rows: list[dict]) -> None:
         print(f"no {hi} x {hi} run is shown converged (no run within {CONVERGED} dB of its 3 x run)")
     peak = max(r["peak_rss_mb"] for r in rows)
     print(f"peak memory {peak:.0f} MB (target < 4096: {'met' if peak < 4096 else 'NOT met'})")
+    if any("gpu" in r for r in rows):
+        print(f"on {rows[0]['gpu']}: peak GPU memory (torch) {max(r['peak_gpu_mb'] for r in rows):.0f} MB")
 
 
 def main() -> None:
@@ -136,6 +144,8 @@ def main() -> None:
                     "pair, e.g. 100:3000,400:9000,400:27000,100:9000,100:27000)")
     ap.add_argument("--method", default="spikelik", help="the trainer's --method (oracle: the same field fitted to "
                     "the ground-truth images, what the field and its optimisation reach without the spikes' noise)")
+    ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where both runs train and evaluate "
+                    "(cuda: the GPU's name and peak GPU memory are added to each row)")
     ap.add_argument("--json", type=Path, default=None, help="write the rows and load averages to this file")
     ap.add_argument("--table", type=Path, default=None, help="print the table of a saved --json file and stop")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
@@ -151,13 +161,13 @@ def main() -> None:
         ap.error("a dataset is needed (or --table FILE)")
     if args.child:
         print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse,
-                               args.method)))
+                               args.method, args.device)))
         return
     load0 = os.getloadavg()
     plan_text = f"runs {args.runs}" if args.runs else f"{args.iters or 'the default'} iterations"
     print(f"load average at start: {' '.join(f'{x:.2f}' for x in load0)}; "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; "
-          f"{plan_text}; method {args.method}; "
+          f"{plan_text}; method {args.method}; device {args.device}; "
           f"{'lazy optimiser above 128^3' if args.sparse else 'dense Adam'}")
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         base = args.out or Path(tmp)
