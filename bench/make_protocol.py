@@ -13,11 +13,12 @@ import numpy as np
 
 HERE = Path(__file__).resolve().parent
 RESULTS = HERE / "results" / "protocol.jsonl"
+GPU_RESULTS = HERE / "results" / "protocol_gpu.jsonl"  # runs on a GPU (bench_protocol.py --results), kept apart
 OUT = HERE / "PROTOCOL.md"
 INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
-from bench_protocol import (FIELD, KNOWLEDGE, METHODS, OLD_FIELD, sensor_model,  # noqa: E402 (the runner's names)
-                            sensor_name)
+from bench_protocol import (FIELD, KNOWLEDGE, METHODS, OLD_FIELD, row_key, sensor_model,  # noqa: E402
+                            sensor_name)  # (the runner's names)
 from spikenerf.config import default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
 
 SPIKE_METHODS = [m for m in METHODS if m != "oracle"]  # the plan's runs (the oracle is a reference, not planned)
@@ -80,13 +81,51 @@ over them.
 """
 
 
-def load() -> list:
+def load(path: Path | None = None) -> list:
     """The results, each row's ``sensor`` named as the tables group it (bench_protocol.sensor_name:
     the ``calibrated`` preset with its temporal noise, since rows of different presets differ)."""
-    if not RESULTS.is_file():
+    path = path or RESULTS
+    if not path.is_file():
         return []
-    rows = [json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]
+    rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     return [{**r, "sensor": sensor_name(r)} for r in rows]
+
+
+def gpu_section(gpu: list, cpu: list) -> list[str]:
+    """The runs made on a GPU, one line each, beside the same run (same protocol key) on the CPU where
+    there is one: the device changes only float rounding, so the two differ by float noise alone; and,
+    per run, the object PSNR gained by three times the iterations where both are there."""
+    by_key = {row_key(r): r for r in cpu}
+    out = ["| run | GPU | iters | train s | wall s | PSNR full / object | same run on the CPU: full / object, "
+           "train s | GPU − CPU, object |", "|---|---|---|---|---|---|---|---|"]
+    diffs = []
+    for r in sorted(gpu, key=lambda r: (-r["resolution"], r["data"], r["sensor"], r["intensity"],
+                                        METHODS.index(r["method"]) if r["method"] in METHODS else 99,
+                                        r["knowledge"], r["seed"], r["iterations"])):
+        m, c = r["metrics"], by_key.get(row_key(r))
+        name = f"{r['data']}, {r['sensor']}, {r['resolution']} x {r['resolution']}, i{r['intensity']}, " \
+               f"{r['method']} ({r['knowledge']}), seed {r['seed']}"
+        same, diff = "–", "–"
+        if c is not None:
+            same = f"{c['metrics']['psnr']:.2f} / {c['metrics']['psnr_object']:.2f}, {c['train_seconds']:.0f} s"
+            diffs.append(m["psnr_object"] - c["metrics"]["psnr_object"])
+            diff = f"{diffs[-1]:+.3f}"
+        out.append(f"| {name} | {r.get('gpu', r['device'])} | {r['iterations']} | {r['train_seconds']:.0f} | "
+                   f"{r['wall_seconds']:.0f} | {m['psnr']:.2f} / {m['psnr_object']:.2f} | {same} | {diff} |")
+    out.append("")
+    if diffs:
+        out.append(f"Runs made on both: {len(diffs)}; the largest GPU − CPU difference in object PSNR is "
+                   f"{max(abs(d) for d in diffs):.3f} dB.")
+    for r in gpu:
+        long = next((q for q in gpu if row_key(q)[:7] == row_key(r)[:7] and q["iterations"] == 3 * r["iterations"]
+                     and row_key(q)[8:] == row_key(r)[8:]), None)
+        if long is not None:
+            gain = long["metrics"]["psnr_object"] - r["metrics"]["psnr_object"]
+            out.append(f"{r['data']}, {r['sensor']}, {r['resolution']} x {r['resolution']}, i{r['intensity']}, "
+                       f"{r['method']}, seed {r['seed']}: {long['iterations']} iterations ({long['train_seconds']:.0f} s) "
+                       f"score {gain:+.2f} dB of object PSNR over {r['iterations']} ({r['train_seconds']:.0f} s): "
+                       f"{'converged' if gain <= 0.3 else 'not converged'} at {r['iterations']} (0.3 dB criterion).")
+    return out + [""]
 
 
 def _stat(values, digits: int = 2) -> str:
@@ -299,6 +338,13 @@ def main() -> None:
                   "themselves, a practical ceiling (measured, not a bound) on what a better spike objective "
                   "can gain with this field. Where it is below 3 dB, the first target needs a better field, "
                   "not only a better objective.", ""]
+    gpu = [r for r in load(GPU_RESULTS) if r.get("field", OLD_FIELD) == FIELD]
+    if gpu:
+        lines += ["## On a GPU (bench/results/protocol_gpu.jsonl; bench/gpu_session.sh)", "",
+                  "The same protocol (data, settings, held-out views) on a lent GPU machine, kept apart from the "
+                  "tables above, which are the 2-core CPU machine's. Train s is the training loop's own time "
+                  "(loading the data excluded); wall s adds loading and evaluating all held-out views.", ""]
+        lines += gpu_section(gpu, rows)
     lines += ["## Still missing (current trainer)", ""]
     lines += missing(rows) or ["Nothing: every planned run is in the results file."]
     OUT.write_text("\n".join(lines) + "\n")

@@ -109,3 +109,25 @@ def test_rows_of_different_calibrated_presets_are_different_runs():
     assert bench_protocol.row_key(new) != bench_protocol.row_key(old)
     rsir = {**old, "sensor": "rsir"}
     assert bench_protocol.sensor_name(rsir) == "rsir"
+
+
+def test_gpu_rows_sit_beside_the_same_run_on_the_cpu():
+    """A GPU row is matched to the CPU row of the same protocol key (its object PSNR difference shown), an
+    unmatched one shows none, and a run with three times the iterations gives the convergence line."""
+    import bench_protocol
+    base = {**_row("spikelik", "true maps", 25.0, iterations=9000), "sensor": "rsir", "field": bench_protocol.FIELD,
+            "train_seconds": 3000.0, "wall_seconds": 3300.0, "device": "cpu"}
+    base["metrics"] = {"psnr": 30.0, "psnr_object": 25.0}
+    cpu = [base]
+    gpu = [{**base, "device": "cuda", "gpu": "NVIDIA H200", "train_seconds": 90.0, "wall_seconds": 120.0,
+            "metrics": {"psnr": 30.1, "psnr_object": 25.04}},
+           {**base, "device": "cuda", "gpu": "NVIDIA H200", "iterations": 27000, "train_seconds": 230.0,
+            "wall_seconds": 260.0, "metrics": {"psnr": 31.0, "psnr_object": 26.0}}]
+    lines = make_protocol.gpu_section(gpu, cpu)
+    short = next(line for line in lines if "| 9000 |" in line)
+    assert short.endswith("| 30.00 / 25.00, 3000 s | +0.040 |")
+    long = next(line for line in lines if "| 27000 |" in line)
+    assert long.endswith("| – | – |")
+    assert any("largest GPU − CPU difference in object PSNR is 0.040 dB" in line for line in lines)
+    conv = next(line for line in lines if "0.3 dB criterion" in line)
+    assert "+0.96 dB" in conv and "not converged at 9000" in conv

@@ -64,7 +64,7 @@ def test_sensor_models_agree_on_cuda():
     x = torch.rand(4096, generator=g)
     resp, dark = 0.8 + 0.4 * torch.rand(4096, generator=g), 0.02 * torch.rand(4096, generator=g)
     for dev in ("cpu", "cuda"):
-        xs = x.to(dev).requires_grad_(True)
+        xs = x.detach().clone().to(dev).requires_grad_(True)  # a leaf on each device (x itself stays grad-free)
         maps = neuron.paper_fpn_maps(resp.to(dev), dark.to(dev), 4.9e-4)
         out = (neuron.paper_pixel(xs, 64, *maps).sum()
                + neuron.rsir_rate(xs, 32, resp.to(dev), dark.to(dev)).sum()
