@@ -195,6 +195,22 @@ def test_grid_learning_rate_from_the_command_line_and_resume_guard(dataset, tmp_
     assert res.exit_code == 2 and "--lr-grid" in res.output and not (tmp_path / "lr0").exists()
 
 
+def test_learning_rate_decay_from_the_command_line_and_resume_guard(dataset, tmp_path):
+    from spikenerf.train import learning_rate_factor
+    assert learning_rate_factor(0, 100) == 1.0 and abs(learning_rate_factor(100, 100) - 0.1) < 1e-12  # the default
+    assert abs(learning_rate_factor(50, 100, 0.25) - 0.5) < 1e-12 and learning_rate_factor(70, 100, 1.0) == 1.0
+    run = tmp_path / "decay"
+    args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
+    res = CliRunner().invoke(main, args + ["--iters", "3", "--lr-decay", "0.5"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "config.json").read_text())["lr_decay"] == 0.5
+    res = CliRunner().invoke(main, args + ["--iters", "6"])  # the default 0.1 would change the run's schedule
+    assert res.exit_code == 2 and "lr_decay=0.5" in res.output and "Traceback" not in res.output
+    for bad in ("0", "1.5"):
+        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), "--lr-decay", bad])
+        assert res.exit_code == 2 and "--lr-decay" in res.output and not (tmp_path / "bad").exists()
+
+
 def test_oracle_learns_the_sphere_from_its_images_and_needs_them(dataset, tmp_path):
     """``--method oracle`` fits the train views' ground-truth images; a view whose PNG is a
     reconstruction (an imported capture) has none: one line, exit 2, no run folder."""

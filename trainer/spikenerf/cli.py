@@ -56,7 +56,10 @@ def main():
 @click.option("--seed", default=TrainConfig.seed, show_default=True, type=int)
 @click.option("--batch-rays", default=TrainConfig.batch_rays, show_default=True, type=click.IntRange(min=1))
 @click.option("--lr-grid", default=TrainConfig.lr_grid, show_default=True, type=click.FloatRange(min=0, min_open=True),
-              help="Adam's learning rate of the voxel grids at the start (it decays to a tenth over the run).")
+              help="Adam's learning rate of the voxel grids at the start (it decays to --lr-decay of it over the run).")
+@click.option("--lr-decay", default=TrainConfig.lr_decay, show_default=True,
+              type=click.FloatRange(min=0, max=1, min_open=True),
+              help="The learning rates decay exponentially to this fraction of their start over the run (1 = none).")
 @click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
               help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
 @click.option("--grid-final", default=TrainConfig.grid_final, show_default=True, type=click.IntRange(min=0),
@@ -82,7 +85,7 @@ def main():
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, windows, sensor_maps, out, seed, batch_rays, lr_grid,
-          sh_degree,
+          lr_decay, sh_degree,
           grid_final, fit_box, space, tv_weight, tv_points, lazy_above, checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
@@ -90,7 +93,8 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
     dataset = dataset.resolve()
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
-                      frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, sh_degree=sh_degree,
+                      frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
+                      sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, tv_weight=tv_weight, tv_points=tv_points, space=space,
                       lazy_above=lazy_above, checkpoint_every=checkpoint_every,
                       sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps

@@ -40,6 +40,7 @@ class TrainConfig:
     batch_rays: int = 2048
     lr_grid: float = 0.1
     lr_mlp: float = 2e-3
+    lr_decay: float = 0.1  # the learning rates decay exponentially to this fraction of their start over the run
     grid_start: int = 32
     grid_final: int = 0  # 0 = chosen from the image size
     upsample_at: tuple = (0.1, 0.2, 0.3)  # fractions of iters at which the grid grows

@@ -83,9 +83,9 @@ def make_optimizer(field: GridField, cfg: TrainConfig):
                              {"params": field.mlp.parameters(), "lr": cfg.lr_mlp}], betas=(0.9, 0.99), fused=True)
 
 
-def learning_rate_factor(it: int, iters: int) -> float:
-    """Exponential decay to 0.1 of the start over the run."""
-    return 0.1 ** (it / max(1, iters))
+def learning_rate_factor(it: int, iters: int, final: float = 0.1) -> float:
+    """Exponential decay to ``final`` (``--lr-decay``) of the start over the run."""
+    return final ** (it / max(1, iters))
 
 
 class Batch:
@@ -204,9 +204,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     --frames used every frame of the stream, those from before --windows the method's fixed count."""
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
-           "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, **ck["config"]}
+           "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
+           **ck["config"]}
     new = cfg.to_json()
-    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "grid_start", "grid_final",
+    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "grid_start", "grid_final",
                 "sh_degree", "sh_scale", "frames", "windows", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
@@ -339,7 +340,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
             loss = loss + cfg.tv_weight * tv
         _check_loss(loss, it, ck_path, bar)
         for g, base in zip(opt.param_groups, (cfg.lr_grid, cfg.lr_mlp)):
-            g["lr"] = base * learning_rate_factor(it, cfg.iters)
+            g["lr"] = base * learning_rate_factor(it, cfg.iters, cfg.lr_decay)
         opt.zero_grad(set_to_none=False)  # the grids' gradients stay allocated: model._CornerRead adds into them
         loss.backward()
         opt.step()
