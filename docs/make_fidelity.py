@@ -1129,6 +1129,12 @@ Second round (issue 15, effects chosen by held-out evidence):
   intercept of the residual rate over the light to the fitted one, and is that of the model at
   gamma = 1 unless a nonlinearity is detected (a gamma slightly below 1 lifts dark pixels as a
   dark rate does).
+- A spread `dark_current` (median 0.0031, log-SD 0.47) beside one `refractory` frame at I = 97 had
+  its median read 28 % high (0.00397): that intercept was fitted over all eight light bins, and the
+  brightest bins' residual, bent by the refractory compression (-0.0019 against +0.0002 to +0.0006
+  below), tilted the line. A missing dark rate adds the same at every light, so the intercept now
+  comes from the darker half of the bins: 0.00317 (+2 %); a spread dark map alone (median 0.00562,
+  log-SD 0.26) reads 0.00556 (0.00566 before).
 - `column_pattern` with a noise-free `reset_to_zero` at I = 173 was missed: no row had 4 usable
   pixels, the row factors were NaN and so were the gain and column estimates. And a per-pixel gain
   map reproduced a column pattern by itself (the held-out choice then dropped the columns); the

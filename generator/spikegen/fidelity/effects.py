@@ -98,9 +98,9 @@ def joint_spread(ctx: Context, fit: Fit, linear: bool = False) -> dict | None:
     A noise-free reset to zero leaves only long intervals: then the pooled relative covariance
     is all gain. Also ``dark_shift``: the intercept (over ``L``) of the bin means of the whole
     window's measured rate minus the adopted model's (the refit at gamma = 1 if ``linear``, as
-    effects._adopted), over ``a R_b``: the mean dark rate that model misses (the fit leaves the
-    upper tail of a spread dark map out as outliers where the light is weak). None without a
-    reference or with too few pixels."""
+    effects._adopted), over ``a R_b``, in the darker half of the bins: the mean dark rate that
+    model misses (the fit leaves the upper tail of a spread dark map out as outliers where the
+    light is weak). None without a reference or with too few pixels."""
     st = fit.structure
     if ctx.self_ref or st.e is None:
         return None
@@ -137,7 +137,10 @@ def joint_spread(ctx: Context, fit: Fit, linear: bool = False) -> dict | None:
             noise[b] = float(np.var(r1[m] - r2[m])) / 4.0  # counting noise of the whole window
     out = _spread_regression(np.array(rows), edges, noise)
     if out is not None:
-        shift = _line_fit(np.array(means))
+        # the intercept from the darker half of the bins only: a missing dark rate adds the same at
+        # every light, while the other effects' model errors (a refractory period's compression, a
+        # nonlinearity) grow with it and, fitted over the whole range, tilt the line
+        shift = _line_fit(np.array(means[:max(3, len(means) // 2)]))
         out.update(dark_shift=shift[0], dark_shift_se=shift[1])
     return out
 
