@@ -2,6 +2,7 @@
 
     python bench/bench_settings.py DATASET --name NAME --iters 1500 [-- TRAIN OPTIONS...]
     python bench/bench_settings.py --table          # the markdown table of bench/results/settings.jsonl
+    python bench/bench_settings.py --table --since NAME   # ... of the rows from NAME on
 
 Trains ``spikenerf train DATASET --iters N --out <work>/NAME [TRAIN OPTIONS]``, evaluates it on the
 dataset's held-out views (``spikenerf eval``) and appends one line to
@@ -70,9 +71,16 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=1500)
     ap.add_argument("--work", type=Path, default=REPO / "bench_out" / "settings")
     ap.add_argument("--table", action="store_true", help="print the table of the results file and stop")
+    ap.add_argument("--since", default=None, help="with --table: only the rows from this one on (by name)")
     args, extra = ap.parse_known_args()  # the rest (after --) goes to spikenerf train
     if args.table:
-        print(table([json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]))
+        rows = [json.loads(line) for line in RESULTS.read_text().splitlines() if line.strip()]
+        if args.since:
+            names = [r["name"] for r in rows]
+            if args.since not in names:
+                sys.exit(f"no row named {args.since!r} in {RESULTS}")
+            rows = rows[names.index(args.since):]
+        print(table(rows))
         return
     if args.dataset is None or not args.name:
         sys.exit("give DATASET and --name (or --table)")
