@@ -2,22 +2,33 @@
 # The GPU checks of issues 13 and 14 in one pass, on a machine with a CUDA GPU and a python3 that has
 # torch (e.g. a lent device machine; run from the repository root):
 #
-#   bench/gpu_session.sh LEGO OUT [SECONDS] [PHASE]
+#   bench/gpu_session.sh LEGO OUT [SECONDS] [STAGE ...]
 #
 # LEGO: the NeRF-synthetic lego at 400 x 400 (../shared/data/nerf_synthetic_lego_400); OUT: where
 # logs and results go; SECONDS: a budget after which no stage starts and a running one is stopped
-# (default 540); PHASE: "first" (default: the GPU tests, the 400 x 400 rsir i32 dataset, the
-# protocol's spikelik run with the default 9000 iterations, a profile of its steps, the same run with
-# 27000 iterations) or "more" (the 27000-iteration run resumed if the first phase was cut, then the
-# baselines at i32). Every stage's log lands in OUT; the protocol's rows in OUT/protocol_gpu.jsonl
-# (bench/bench_protocol.py --results), to be copied to bench/results/protocol_gpu.jsonl.
+# (default 540). STAGEs, in the order given (default: tests spikelik profile baselines converge):
+#   tests      pytest -m gpu tests/test_trainer_gpu.py
+#   spikelik   the protocol's spikelik run, rsir i32 400 x 400, seed 0, default 9000 iterations
+#   profile    bench_trainer_profile.py on that run (where a step's time goes)
+#   baselines  the other methods at rsir i32, seed 0
+#   converge   spikelik with 27000 iterations (converged at 9000 if within 0.3 dB)
+#   converge81 spikelik with 81000 iterations (converged at 27000?); resumes across calls on a warm machine
+# Rows go to OUT/protocol_gpu.jsonl (bench/bench_protocol.py --results), which starts as a copy of
+# bench/results/protocol_gpu.jsonl, so runs recorded there are skipped; copy it back afterwards.
+# Work folders stay in bench_out/protocol, so a run cut by the budget resumes in a later call.
 set -u
 LEGO=$1
 OUT=$2
 BUDGET=${3:-540}
-PHASE=${4:-first}
+shift $(( $# < 3 ? $# : 3 ))
+STAGES=${*:-tests spikelik profile baselines converge}
+for st in $STAGES; do
+    case $st in tests|spikelik|profile|baselines|converge|converge81) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+done
 T0=$(date +%s)
 mkdir -p "$OUT"
+[ -f bench/results/protocol_gpu.jsonl ] && [ ! -f "$OUT/protocol_gpu.jsonl" ] \
+    && cp bench/results/protocol_gpu.jsonl "$OUT/protocol_gpu.jsonl"
 left() { echo $((BUDGET - ($(date +%s) - T0))); }
 stage() {  # stage NAME CMD...: run CMD with what is left of the budget, its output in OUT/NAME.log
     local name=$1; shift
@@ -47,19 +58,23 @@ torch.__version__, 'cuda', torch.version.cuda)"
 P="python3 bench/bench_protocol.py --resolution 400 --sensors rsir --intensities 32 --device cuda --workers $(nproc)
    --results $OUT/protocol_gpu.jsonl --out bench_out/protocol"
 RUN=bench_out/protocol/runs_400/lego_rsir_32_spikelik_true-maps_400_0_9000_0_grid-fitted-box
-if [ "$PHASE" = first ]; then
-    stage gpu_tests python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_trainer_gpu.py
-    stage protocol_9000 $P --methods spikelik --seeds 0
-    if [ -n "${REF_MANIFEST:-}" ]; then  # the dataset made here against one made elsewhere: the same bytes?
-        python3 -c "import json, sys; a, b = (json.load(open(f))['files'] for f in sys.argv[1:]); \
+for st in $STAGES; do
+    case $st in
+        tests) stage gpu_tests python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_trainer_gpu.py ;;
+        spikelik) stage protocol_9000 $P --methods spikelik --seeds 0 ;;
+        profile) if [ -f "$RUN/checkpoint.pt" ]; then
+                     stage profile python3 bench/bench_trainer_profile.py "$RUN" --steps 200 --device cuda
+                 else echo "profile: no $RUN here (run the spikelik stage first)"; fi ;;
+        baselines) stage protocol_baselines $P --methods tfi,spikenerf-paper,spikenerf,spikenerf-noR,tfp256,tfp32 \
+                       --seeds 0 ;;
+        converge) stage protocol_27000 $P --methods spikelik --seeds 0 --iters 27000 ;;
+        converge81) stage protocol_81000 $P --methods spikelik --seeds 0 --iters 81000 ;;
+    esac
+done
+DATA=bench_out/protocol/data_lego_rsir_400/nerf_synthetic_lego_400_i32
+if [ -n "${REF_MANIFEST:-}" ] && [ -f $DATA/manifest.json ]; then  # the dataset made here against one made elsewhere
+    python3 -c "import json, sys; a, b = (json.load(open(f))['files'] for f in sys.argv[1:]); \
 print('dataset files', len(a), 'identical to the reference' if a == b else 'DIFFER from the reference:', \
-sum(x != y for x, y in zip(a, b)), 'of', len(b))" bench_out/protocol/data_lego_rsir_400/nerf_synthetic_lego_400_i32/manifest.json \
-            "$REF_MANIFEST" | tee "$OUT/dataset_check.txt"
-    fi
-    stage profile python3 bench/bench_trainer_profile.py "$RUN" --steps 200 --device cuda
-    stage protocol_27000 $P --methods spikelik --seeds 0 --iters 27000
-else
-    stage protocol_27000b $P --methods spikelik --seeds 0 --iters 27000
-    stage protocol_baselines $P --methods tfp32,tfi,spikenerf-paper --seeds 0
+sum(x != y for x, y in zip(a, b)), 'of', len(b))" $DATA/manifest.json "$REF_MANIFEST" | tee "$OUT/dataset_check.txt"
 fi
 echo "[$((BUDGET - $(left))) s] done"
