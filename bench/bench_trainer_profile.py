@@ -25,22 +25,13 @@ from spikenerf.config import TrainConfig
 from spikenerf.train import train
 
 
-def _sync(device: str) -> None:
-    if device == "cuda":
-        torch.cuda.synchronize()
+def _checkpoint(out: Path) -> dict:
+    return torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)
 
 
-def _train_seconds(out: Path) -> float:
-    return float(torch.load(out / "checkpoint.pt", map_location="cpu", weights_only=False)["train_seconds"])
-
-
-def continue_run(out: Path, cfg: TrainConfig, until: int) -> float:
-    """Train the copy in ``out`` on to iteration ``until``; the seconds its training loop took (the
-    checkpoint's ``train_seconds`` before and after: loading the data and saving are not in it)."""
-    before = _train_seconds(out)
+def continue_run(out: Path, cfg: TrainConfig, until: int) -> None:
+    """Train the copy in ``out`` on to iteration ``until``."""
     train(dataclasses.replace(cfg, iters=until), out, progress=False, log=lambda m: None)
-    _sync(cfg.device)
-    return _train_seconds(out) - before
 
 
 def main() -> None:
@@ -54,7 +45,7 @@ def main() -> None:
     keys = {f.name for f in dataclasses.fields(TrainConfig)}
     cfg = TrainConfig(**{k: v for k, v in saved.items() if k in keys})
     cfg = dataclasses.replace(cfg, device=args.device, checkpoint_every_s=1e9, checkpoint_every=10 ** 9)
-    done = int(torch.load(args.run / "checkpoint.pt", map_location="cpu", weights_only=False)["iteration"])
+    done = int(_checkpoint(args.run)["iteration"])
     half = max(args.steps // 2, 1)
     print(f"{args.run} ({cfg.method}, {saved['width']} x {saved['height']}, trained {done} iterations); device "
           f"{args.device}" + (f" ({torch.cuda.get_device_name()})" if args.device == "cuda" else "") +
@@ -65,7 +56,10 @@ def main() -> None:
         shutil.copy2(args.run / "checkpoint.pt", out / "checkpoint.pt")
         # a few steps first: the CUDA context, kernels and allocator warm up outside what is timed
         continue_run(out, cfg, done + 5)
-        loop = continue_run(out, cfg, done + 5 + half)
+        # the training loop's own clock (train_seconds), before and after: loading the data and saving are not in it
+        before = float(_checkpoint(out)["train_seconds"])
+        continue_run(out, cfg, done + 5 + half)
+        loop = float(_checkpoint(out)["train_seconds"]) - before
         print(f"{half} steps at the final grid: {1000 * loop / half:.1f} ms per step ({loop:.2f} s in the training "
               f"loop; loading the data and the checkpoint are not counted)")
         acts = [torch.profiler.ProfilerActivity.CPU]

@@ -37,7 +37,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_protocol import _commit  # (bench/ is this script's folder: on sys.path)
+from bench_protocol import _commit, _gpu  # (bench/ is this script's folder: on sys.path)
 from spikenerf.config import default_iters
 
 CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its iterations gain no more
@@ -59,10 +59,10 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
     t0 = time.perf_counter()
     m = evaluate(out, device=device, progress=False, max_views=eval_views)
     t_eval = time.perf_counter() - t0
-    gpu = {}
-    if device == "cuda":  # the GPU's name and the most memory torch held on it (training and evaluation)
+    gpu = _gpu(device)
+    if gpu:  # and the most memory torch held on it (training and evaluation)
         import torch
-        gpu = {"gpu": torch.cuda.get_device_name(), "peak_gpu_mb": torch.cuda.max_memory_allocated() / 2 ** 20}
+        gpu["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
     return {"method": method, "resolution": resolution, "iters": iters, "device": device, **gpu,
             "train_s": t_train, "eval_s": t_eval, "views": m["views"],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,

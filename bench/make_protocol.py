@@ -17,8 +17,8 @@ GPU_RESULTS = HERE / "results" / "protocol_gpu.jsonl"  # runs on a GPU (bench_pr
 OUT = HERE / "PROTOCOL.md"
 INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
-from bench_protocol import (FIELD, KNOWLEDGE, METHODS, OLD_FIELD, row_key, sensor_model,  # noqa: E402
-                            sensor_name)  # (the runner's names)
+from bench_protocol import (FIELD, KEY, KNOWLEDGE, METHODS, OLD_FIELD, row_key,  # noqa: E402 (the runner's names)
+                            sensor_model, sensor_name)
 from spikenerf.config import default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
 
 SPIKE_METHODS = [m for m in METHODS if m != "oracle"]  # the plan's runs (the oracle is a reference, not planned)
@@ -81,14 +81,23 @@ over them.
 """
 
 
-def load(path: Path | None = None) -> list:
+def load(path: Path = RESULTS) -> list:
     """The results, each row's ``sensor`` named as the tables group it (bench_protocol.sensor_name:
     the ``calibrated`` preset with its temporal noise, since rows of different presets differ)."""
-    path = path or RESULTS
     if not path.is_file():
         return []
     rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
     return [{**r, "sensor": sensor_name(r)} for r in rows]
+
+
+def _run_name(r: dict) -> str:
+    return (f"{r['data']}, {r['sensor']}, {r['resolution']} x {r['resolution']}, i{r['intensity']}, "
+            f"{r['method']} ({r['knowledge']}), seed {r['seed']}")
+
+
+def _but_iterations(r: dict) -> tuple:
+    """The row's protocol key without its iteration count: the same run, trained longer or shorter."""
+    return tuple(v for k, v in zip(KEY, row_key(r)) if k != "iterations")
 
 
 def gpu_section(gpu: list, cpu: list) -> list[str]:
@@ -103,26 +112,23 @@ def gpu_section(gpu: list, cpu: list) -> list[str]:
                                         METHODS.index(r["method"]) if r["method"] in METHODS else 99,
                                         r["knowledge"], r["seed"], r["iterations"])):
         m, c = r["metrics"], by_key.get(row_key(r))
-        name = f"{r['data']}, {r['sensor']}, {r['resolution']} x {r['resolution']}, i{r['intensity']}, " \
-               f"{r['method']} ({r['knowledge']}), seed {r['seed']}"
         same, diff = "–", "–"
         if c is not None:
             same = f"{c['metrics']['psnr']:.2f} / {c['metrics']['psnr_object']:.2f}, {c['train_seconds']:.0f} s"
             diffs.append(m["psnr_object"] - c["metrics"]["psnr_object"])
             diff = f"{diffs[-1]:+.3f}"
-        out.append(f"| {name} | {r.get('gpu', r['device'])} | {r['iterations']} | {r['train_seconds']:.0f} | "
+        out.append(f"| {_run_name(r)} | {r.get('gpu', r['device'])} | {r['iterations']} | {r['train_seconds']:.0f} | "
                    f"{r['wall_seconds']:.0f} | {m['psnr']:.2f} / {m['psnr_object']:.2f} | {same} | {diff} |")
     out.append("")
     if diffs:
         out.append(f"Runs made on both: {len(diffs)}; the largest GPU − CPU difference in object PSNR is "
                    f"{max(abs(d) for d in diffs):.3f} dB.")
+    by_run = {(_but_iterations(r), r["iterations"]): r for r in gpu}
     for r in gpu:
-        long = next((q for q in gpu if row_key(q)[:7] == row_key(r)[:7] and q["iterations"] == 3 * r["iterations"]
-                     and row_key(q)[8:] == row_key(r)[8:]), None)
+        long = by_run.get((_but_iterations(r), 3 * r["iterations"]))
         if long is not None:
             gain = long["metrics"]["psnr_object"] - r["metrics"]["psnr_object"]
-            out.append(f"{r['data']}, {r['sensor']}, {r['resolution']} x {r['resolution']}, i{r['intensity']}, "
-                       f"{r['method']}, seed {r['seed']}: {long['iterations']} iterations ({long['train_seconds']:.0f} s) "
+            out.append(f"{_run_name(r)}: {long['iterations']} iterations ({long['train_seconds']:.0f} s) "
                        f"score {gain:+.2f} dB of object PSNR over {r['iterations']} ({r['train_seconds']:.0f} s): "
                        f"{'converged' if gain <= 0.3 else 'not converged'} at {r['iterations']} (0.3 dB criterion).")
     return out + [""]

@@ -183,32 +183,25 @@ def test_sh_degree_from_the_command_line_and_resume_guard(dataset, tmp_path):
     assert res.exit_code == 2 and "sh_degree=0" in res.output and "Traceback" not in res.output
 
 
-def test_grid_learning_rate_from_the_command_line_and_resume_guard(dataset, tmp_path):
-    run = tmp_path / "lr"
-    args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
-    res = CliRunner().invoke(main, args + ["--iters", "3", "--lr-grid", "0.3"])
-    assert res.exit_code == 0, res.output
-    assert json.loads((run / "config.json").read_text())["lr_grid"] == 0.3
-    res = CliRunner().invoke(main, args + ["--iters", "6"])  # the default 0.1 would change the run's schedule
-    assert res.exit_code == 2 and "lr_grid=0.3" in res.output and "Traceback" not in res.output
-    res = CliRunner().invoke(main, args + ["--iters", "3", "--lr-grid", "0"])
-    assert res.exit_code == 2 and "--lr-grid" in res.output and not (tmp_path / "lr0").exists()
-
-
-def test_learning_rate_decay_from_the_command_line_and_resume_guard(dataset, tmp_path):
+def test_learning_rate_factor_decays_to_the_fraction_asked():
     from spikenerf.train import learning_rate_factor
     assert learning_rate_factor(0, 100) == 1.0 and abs(learning_rate_factor(100, 100) - 0.1) < 1e-12  # the default
     assert abs(learning_rate_factor(50, 100, 0.25) - 0.5) < 1e-12 and learning_rate_factor(70, 100, 1.0) == 1.0
-    run = tmp_path / "decay"
+
+
+@pytest.mark.parametrize("option, value, key, bad", [("--lr-grid", "0.3", "lr_grid", ("0",)),
+                                                     ("--lr-decay", "0.5", "lr_decay", ("0", "1.5"))])
+def test_learning_rate_options_from_the_command_line_and_resume_guard(dataset, tmp_path, option, value, key, bad):
+    run = tmp_path / "lr"
     args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
-    res = CliRunner().invoke(main, args + ["--iters", "3", "--lr-decay", "0.5"])
+    res = CliRunner().invoke(main, args + ["--iters", "3", option, value])
     assert res.exit_code == 0, res.output
-    assert json.loads((run / "config.json").read_text())["lr_decay"] == 0.5
-    res = CliRunner().invoke(main, args + ["--iters", "6"])  # the default 0.1 would change the run's schedule
-    assert res.exit_code == 2 and "lr_decay=0.5" in res.output and "Traceback" not in res.output
-    for bad in ("0", "1.5"):
-        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), "--lr-decay", bad])
-        assert res.exit_code == 2 and "--lr-decay" in res.output and not (tmp_path / "bad").exists()
+    assert json.loads((run / "config.json").read_text())[key] == float(value)
+    res = CliRunner().invoke(main, args + ["--iters", "6"])  # the default would change the run's schedule
+    assert res.exit_code == 2 and f"{key}={value}" in res.output and "Traceback" not in res.output
+    for v in bad:
+        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), option, v])
+        assert res.exit_code == 2 and option in res.output and not (tmp_path / "bad").exists()
 
 
 def test_oracle_learns_the_sphere_from_its_images_and_needs_them(dataset, tmp_path):
