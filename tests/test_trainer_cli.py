@@ -190,8 +190,9 @@ def test_learning_rate_factor_decays_to_the_fraction_asked():
 
 
 @pytest.mark.parametrize("option, value, key, bad", [("--lr-grid", "0.3", "lr_grid", ("0",)),
-                                                     ("--lr-decay", "0.5", "lr_decay", ("0", "1.5"))])
-def test_learning_rate_options_from_the_command_line_and_resume_guard(dataset, tmp_path, option, value, key, bad):
+                                                     ("--lr-decay", "0.5", "lr_decay", ("0", "1.5")),
+                                                     ("--stop-transmittance", "0", "stop_transmittance", ("-1", "1.5"))])
+def test_run_options_from_the_command_line_and_resume_guard(dataset, tmp_path, option, value, key, bad):
     run = tmp_path / "lr"
     args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
     res = CliRunner().invoke(main, args + ["--iters", "3", option, value])

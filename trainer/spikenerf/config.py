@@ -49,6 +49,9 @@ class TrainConfig:
     occupancy_after: int = 100  # no pruning before this iteration (empty space must first be learned)
     occupancy_threshold: float = 2e-2
     tv_weight: float = 1e-4
+    # samples a ray reaches with less transmittance are not rendered (early ray termination,
+    # render.STOP_TRANSMITTANCE); 0 = every occupied sample (checkpoints from before it: 0)
+    stop_transmittance: float = 1e-4
     lazy_above: int = 0  # grids with more voxels than this train with the lazy Adam (optim.py); 0 = never
     # the field's space for a scene that fills the frame: "cube" (world [-1.5, 1.5]^3), "ndc" (LLFF's
     # normalised device coordinates; refused unless the views face one way), "auto" (NDC where it applies,

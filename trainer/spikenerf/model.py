@@ -153,6 +153,12 @@ class GridField(nn.Module):
         vals = leaf.index_select(1, inverse)  # [C, M * 8]
         return (vals.view(-1, *w.shape) * w).sum(-1).t()
 
+    @torch.no_grad()
+    def density(self, points: torch.Tensor) -> torch.Tensor:
+        """Density [M] at world points [M, 3], as :meth:`query` gives it, without gradients (the
+        renderer's early ray termination, render.visible_samples): channel 0 of the grid alone."""
+        return F.softplus(_trilinear(self.grid[:, :1], self.normalise(points))[:, 0] + self.shift)
+
     def query(self, points: torch.Tensor, dirs: torch.Tensor):
         if torch.is_grad_enabled():  # the points a training step reads (tv_at_points puts its prior there)
             self.last_points = points.detach()

@@ -205,9 +205,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
-           **ck["config"]}
+           "stop_transmittance": 0.0, **ck["config"]}
     new = cfg.to_json()
-    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "grid_start", "grid_final",
+    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "stop_transmittance",
+                "grid_start", "grid_final",
                 "sh_degree", "sh_scale", "frames", "windows", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
@@ -331,9 +332,10 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         img, pix, jitter = batch.draw(cfg.batch_rays, gen)
         o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
         if space is None:
-            x, _ = render_rays(field, o, d, jitter, background)  # the composite the sensor model sees
+            # the composite the sensor model sees
+            x, _ = render_rays(field, o, d, jitter, background, stop=cfg.stop_transmittance)
         else:  # sampled uniformly in NDC from the near plane, composited as evaluation and rendering do
-            (x, _), _ = render_ndc_rays(field, space, o, d, jitter, background)
+            (x, _), _ = render_ndc_rays(field, space, o, d, jitter, background, stop=cfg.stop_transmittance)
         loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
         if cfg.tv_weight > 0:
             tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)
