@@ -22,12 +22,17 @@ Usage::
     python bench/bench_trainer_step.py --only grid-step  # just table 3
     python bench/bench_trainer_step.py --run RUN [--run RUN2]  # only the trained fields' table (below)
     python bench/bench_trainer_step.py --run RUN --step        # whole training steps, now against before
+    python bench/bench_trainer_step.py --run RUN --stop        # early ray termination against none
 
 4. ``--run RUN``: a trained run's field (its checkpoint): a training step's rendering and a held-out
    view, samples made in one pass against empty blocks skipped first (``render._skip_blocks``).
 5. ``--run RUN --step``: whole training steps on that field, the trainer's way now (corner reads that
    add into the kept ``grid.grad``) against its way before 2026-11-25 (``grid_sample`` and autograd's
    grid-sized gradients), interleaved on two copies of the field.
+6. ``--run RUN --stop``: early ray termination on that field: the share of a step's occupied samples
+   that their ray reaches with transmittance below 1e-2, 1e-3 and 1e-4; whole training steps with the
+   trainer's ``--stop-transmittance`` against 0 (two copies of the field, the same rays, interleaved);
+   a held-out view's rendering is not changed by it (no gradients: every occupied sample is read).
 """
 from __future__ import annotations
 
@@ -289,16 +294,88 @@ def training_step_table(run: str, reps: int) -> None:
           f"grids after {reps + 2} steps differ by at most {diff:.2e}; load average {os.getloadavg()[0]:.2f} at end")
 
 
+def termination_table(run: str, reps: int) -> None:
+    """Early ray termination (``render.visible_samples``) on a trained run's field: how many occupied
+    samples lie behind transmittance ``stop``, and what dropping them saves in a whole training step
+    (CPU seconds of this process, medians; one thread measures the work even when other jobs share
+    the cores)."""
+    import os
+
+    from spikenerf import train as T
+    from spikenerf.config import TrainConfig
+    from spikenerf.data import load_dataset
+    from spikenerf.methods import METHODS
+    from spikenerf.targets import build_targets
+
+    ck = T.load_checkpoint(os.path.join(run, "checkpoint.pt"), "cpu")
+    known = TrainConfig.__dataclass_fields__
+    cfg = TrainConfig(**{k: tuple(v) if k == "upsample_at" else v for k, v in ck["config"].items() if k in known})
+    ds = load_dataset(cfg.dataset)
+    H, W = T._resolution(ds, cfg.resolution)
+    method = METHODS[cfg.method]
+    batch = T.Batch(build_targets(ds, method, H, W, progress=False, frames=cfg.frames, windows=cfg.windows,
+                                  maps_file=cfg.sensor_maps or None), torch.device("cpu"))
+    focal, bg = ds.camera(H, W), ds.background
+    stop = TrainConfig.stop_transmittance
+    fields = {s: T.field_from_checkpoint(ck, "cpu") for s in (0.0, stop)}
+    opts = {s: T.make_optimizer(f, cfg) for s, f in fields.items()}
+    field = fields[0.0]
+    step_len = field.step_ratio * field.voxel
+    print(f"\n{run}: early ray termination; grid {field.dims}, {H} x {W}; torch threads {torch.get_num_threads()}; "
+          f"load average {os.getloadavg()[0]:.2f} at start")
+    total, behind = 0, {1e-2: 0, 1e-3: 0, 1e-4: 0}
+    with torch.no_grad():
+        for it in range(10):
+            img, pix, jitter = batch.draw(cfg.batch_rays, T.iteration_generator(cfg.seed, it))
+            o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
+            _, ray_of, pts = R._occupied_samples(field, o, d, step_len, jitter)
+            log_t = -(field.density(pts)[0] * (step_len / field.ref_voxel)).clamp(max=30.0)
+            trans = torch.exp(R._exclusive_segment_cumsum(log_t, ray_of, o.shape[0]))
+            total += trans.numel()
+            for t in behind:
+                behind[t] += int((trans < t).sum())
+    print(f"{'occupied samples a ray':>36}: {total / (10 * cfg.batch_rays):.1f}; behind transmittance " +
+          ", ".join(f"{t:g}: {100 * v / total:.1f} %" for t, v in behind.items()) + " (10 batches)")
+
+    def train_step(s: float, it: int) -> None:
+        gen = T.iteration_generator(cfg.seed, it)
+        img, pix, jitter = batch.draw(cfg.batch_rays, gen)
+        o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
+        x, _ = R.render_rays(fields[s], o, d, jitter, bg, stop=s)
+        loss = T.method_loss(method, x, img, pix, batch, ds.intensity)[0] + cfg.tv_weight * fields[s].tv_loss(gen)
+        opts[s].zero_grad(set_to_none=False)
+        loss.backward()
+        opts[s].step()
+        return x.detach()
+
+    times = {s: [] for s in fields}
+    outs = {}
+    for r in range(reps + 2):
+        for s in (0.0, stop) if r % 2 else (stop, 0.0):
+            c0 = time.process_time()
+            outs[s] = train_step(s, 100 + r)
+            if r >= 2:  # two warm-up steps each
+                times[s].append(time.process_time() - c0)
+        if r == 0:
+            diff = float((outs[0.0] - outs[stop]).abs().max())
+    a, b = (1000 * statistics.median(times[s]) for s in (0.0, stop))
+    print(f"{'training step':>36}: stop 0 {a:8.1f} ms, stop {stop:g} {b:8.1f} ms; ratio {a / b:.2f} (CPU time, median "
+          f"of {reps})")
+    print(f"{'first step, largest difference':>36}: {diff:.2e} in a ray's luminance; load average "
+          f"{os.getloadavg()[0]:.2f} at end")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reps", type=int, default=7)
     ap.add_argument("--only", choices=["trilinear", "candidates", "grid-step"], default=None)
     ap.add_argument("--run", action="append", default=[], help="also time a trained run's field (its folder)")
     ap.add_argument("--step", action="store_true", help="with --run: whole training steps, now against before")
+    ap.add_argument("--stop", action="store_true", help="with --run: early ray termination against none")
     args = ap.parse_args()
     if args.run:
         for run in args.run:
-            (training_step_table if args.step else trained_table)(run, args.reps)
+            (termination_table if args.stop else training_step_table if args.step else trained_table)(run, args.reps)
         if args.only is None:
             return
     tables = {"trilinear": trilinear_table, "candidates": candidates_table, "grid-step": grid_step_table}

@@ -369,7 +369,8 @@ def test_early_termination_drops_only_what_the_ray_no_longer_sees():
     stop = 1e-3
     step = f.step_ratio * f.voxel
     _, ray_of, pts = _occupied_samples(f, o, d, step, jitter)
-    keep = visible_samples(f, ray_of, pts, n, step, stop)
+    keep, reads = visible_samples(f, ray_of, pts, n, step, stop)
+    assert reads is not None and reads[0].shape == (8, len(ray_of))  # the main grid's corners, for the query
     assert keep is not None and 0.2 * len(ray_of) < len(ray_of) - len(keep) < 0.9 * len(ray_of)
     with torch.no_grad():  # the transmittance each sample is reached with, ray by ray
         alpha = 1 - torch.exp(-f.query(pts, d[ray_of])[0] * (step / f.ref_voxel))

@@ -133,16 +133,17 @@ class GridField(nn.Module):
         """Trilinear values [M, 1 + C] of the main grid at world points [M, 3]."""
         return _trilinear(self.grid, self.normalise(points))
 
-    def _read(self, grid: torch.Tensor, points: torch.Tensor) -> torch.Tensor:
+    def _read(self, grid: torch.Tensor, points: torch.Tensor, reads: tuple | None = None) -> torch.Tensor:
         """Trilinear values [M, C] of ``grid`` at world points [M, 3]: ``grid_sample`` without
         gradients (evaluation, rendering); with them, the 8 corners of each point gathered, and the
-        gradient added in place into ``grid.grad`` (dense mode, :class:`_CornerRead`) or recorded on
-        the tape (sparse mode)."""
+        gradient added in place into ``grid.grad`` (dense mode, :class:`_CornerRead`; ``reads``: the
+        points' corners of this grid if already found, :meth:`density`) or recorded on the tape
+        (sparse mode)."""
         train = torch.is_grad_enabled() and grid.requires_grad
         if not train or (points.requires_grad and not self.sparse):  # (corner reads give the points no gradient)
             return _trilinear(grid, self.normalise(points))
         if not self.sparse:
-            return _CornerRead.apply(grid, *_corners_by_corner(self.unit(points), grid.shape[2:]))
+            return _CornerRead.apply(grid, *(reads or _corners_by_corner(self.unit(points), grid.shape[2:])))
         idx, w = corners(self.unit(points), grid.shape[2:])
         flat = grid.detach().view(grid.shape[1], -1)
         # the distinct voxels, sorted (gathers from the big grid then run in address order),
@@ -153,16 +154,25 @@ class GridField(nn.Module):
         vals = leaf.index_select(1, inverse)  # [C, M * 8]
         return (vals.view(-1, *w.shape) * w).sum(-1).t()
 
-    @torch.no_grad()
-    def density(self, points: torch.Tensor) -> torch.Tensor:
+    def density(self, points: torch.Tensor) -> tuple[torch.Tensor, tuple | None]:
         """Density [M] at world points [M, 3], as :meth:`query` gives it, without gradients (the
-        renderer's early ray termination, render.visible_samples): channel 0 of the grid alone."""
-        return F.softplus(_trilinear(self.grid[:, :1], self.normalise(points))[:, 0] + self.shift)
+        renderer's early ray termination, render.visible_samples), and the reads :meth:`query` can
+        take for these points (or a subset, sliced along their last axis): in dense training the
+        points' corners of the main grid and their weights, which give the density here as the
+        query's read gives it; otherwise None (the density then comes from ``grid_sample``)."""
+        with torch.no_grad():
+            if self.sparse or not self.grid.requires_grad:
+                return F.softplus(_trilinear(self.grid[:, :1], self.normalise(points))[:, 0] + self.shift), None
+            idx, w = _corners_by_corner(self.unit(points), self.grid.shape[2:])
+            raw = (self.grid.detach()[0, 0].view(-1).index_select(0, idx.view(-1)).view(idx.shape) * w).sum(0)
+            return F.softplus(raw + self.shift), (idx, w)
 
-    def query(self, points: torch.Tensor, dirs: torch.Tensor):
+    def query(self, points: torch.Tensor, dirs: torch.Tensor, reads: tuple | None = None):
+        """Density [M] (per reference voxel) and luminance [M] at world points [M, 3] seen along
+        ``dirs [M, 3]``; ``reads``: what :meth:`density` gave for these points (training only)."""
         if torch.is_grad_enabled():  # the points a training step reads (tv_at_points puts its prior there)
             self.last_points = points.detach()
-        vals = self._read(self.grid, points)
+        vals = self._read(self.grid, points, reads)
         sigma = F.softplus(vals[:, 0] + self.shift)
         if self.sh is not None:  # channel 1 is the degree-0 term (a logit); the SH grid adds the rest
             view = (self._read(self.sh, points) * sh_basis(dirs, self.sh_degree)).sum(-1)

@@ -3,8 +3,10 @@ members). What they read of the field, all of it:
 
 - ``query(points [M, 3], dirs [M, 3]) -> (sigma [M] per reference voxel, x [M])``;
 - ``occupied(points [M, 3]) -> bool [M]`` (empty-space skipping);
-- ``density(points [M, 3]) -> sigma [M]``, without gradients (the samples behind an opaque surface,
-  :func:`visible_samples`; a field without it is rendered at every occupied sample);
+- ``density(points [M, 3]) -> (sigma [M], reads)``, without gradients (the samples behind an opaque
+  surface, :func:`visible_samples`; a field without it is rendered at every occupied sample), where
+  ``reads`` is None or a tuple of tensors along the points (last axis) that ``query`` takes back for
+  a subset of them: ``query(points, dirs, reads)``;
 - ``box``: ``[2, 3]`` tensor, the occupied box (lo, hi) in world units, on the rays' device;
 - ``voxel`` and ``ref_voxel``: the current and the final voxel edge (world units; density is per
   reference voxel), and ``step_ratio``: the sample step in voxels (step = ``step_ratio * voxel``);
@@ -27,10 +29,10 @@ NEAR_T = 0.05  # world rays are sampled from this distance on (rays in NDC start
 # with every stretch kept, the two passes took 1.8 times as long as the one; docs/trainer.md)
 SKIP_MAX_KEPT = 0.8
 SKIP_REPROBE = 16  # after such a hand-back, the block pass is tried again on every 16th call only
-# samples a ray reaches with less transmittance than this are not rendered (Instant-NGP's early ray
-# termination threshold): what they could add to a pixel is below it, and so is the gradient they give
-# the samples in front; on a trained 400 x 400 lego field they are 44 % of the occupied samples
-# (docs/trainer.md, "Samples behind the surface"). 0 renders every occupied sample.
+# in training, samples a ray reaches with less transmittance than this are not rendered (Instant-NGP's
+# early ray termination threshold): what they could add to a pixel is below it, and so is the gradient
+# they give the samples in front; on trained 400 x 400 lego fields they are about 44 % of the occupied
+# samples (docs/trainer.md, "Early ray termination"). 0 renders every occupied sample.
 STOP_TRANSMITTANCE = 1e-4
 
 
@@ -83,20 +85,25 @@ def render_rays(field, origins: torch.Tensor, dirs: torch.Tensor, jitter: torch.
     rays in NDC pass their world directions). ``near``: samples start this far along each ray.
     Only samples inside the occupied box and in occupied cells are evaluated: they are kept
     packed (sorted by ray) and composited with a segmented cumulative sum, so empty space
-    costs neither field queries nor autograd memory. Of those, the samples a ray reaches with
-    transmittance below ``stop`` are dropped first (:func:`visible_samples`).
+    costs neither field queries nor autograd memory. With gradients (training), the samples a ray
+    reaches with transmittance below ``stop`` are dropped first (:func:`visible_samples`); without them
+    (evaluation, rendering) every occupied sample is read, since finding those samples costs a
+    density read of its own, about what reading them does when no gradient follows.
     """
     n = origins.shape[0]
     step = field.step_ratio * field.voxel
     idx, ray_of, pts = _occupied_samples(field, origins, dirs, step, jitter, near=near)
-    if stop > 0 and idx.numel() and hasattr(field, "density"):
-        keep = visible_samples(field, ray_of, pts, n, step, stop)
+    reads = None
+    if stop > 0 and torch.is_grad_enabled() and idx.numel() and hasattr(field, "density"):
+        keep, reads = visible_samples(field, ray_of, pts, n, step, stop)
         if keep is not None:
             idx, ray_of, pts = idx.index_select(0, keep), ray_of.index_select(0, keep), pts.index_select(0, keep)
+            reads = None if reads is None else tuple(r.index_select(-1, keep) for r in reads)
     if idx.numel() == 0:
         zero = origins.new_zeros(n) + 0.0 * field.grid.sum()  # keeps the graph connected
         return (zero + background, zero) if far is None else (zero + background, zero, zero + far)
-    sigma, x = field.query(pts, (dirs if view_dirs is None else view_dirs).index_select(0, ray_of))
+    view = (dirs if view_dirs is None else view_dirs).index_select(0, ray_of)
+    sigma, x = field.query(pts, view) if reads is None else field.query(pts, view, reads)
     log_t = -(sigma * (step / field.ref_voxel)).clamp(max=30.0)  # log(1 - alpha) of each sample
     trans = torch.exp(_exclusive_segment_cumsum(log_t, ray_of, n))
     w = (1 - torch.exp(log_t)) * trans
@@ -238,16 +245,16 @@ def _skip_blocks(field, origins, dirs, step, off, t_in, t_out, n_samp: int, seg:
 @torch.no_grad()
 def visible_samples(field, ray_of: torch.Tensor, pts: torch.Tensor, n: int, step: float, stop: float):
     """Early ray termination: the index of the packed samples (sorted by ray, as
-    :func:`_occupied_samples` gives them) that their ray reaches with transmittance >= ``stop``, or None
-    when that is all of them. The transmittance comes from a pass over the field's density alone,
-    without gradients. Every sample dropped lies behind one with transmittance < ``stop`` on its ray, so
+    :func:`_occupied_samples` gives them) that their ray reaches with transmittance >= ``stop`` (None
+    when that is all of them), and the field's reads of all the samples (``density``). The
+    transmittance comes from a pass over the field's density alone, without gradients. Every sample dropped lies behind one with transmittance < ``stop`` on its ray, so
     the dropped samples add less than ``stop`` to the pixel's luminance and opacity, and the gradient
     they give a sample in front (through its transmittance) is that small too."""
-    sigma = field.density(pts)
+    sigma, reads = field.density(pts)
     log_t = -(sigma * (step / field.ref_voxel)).clamp(max=30.0)
     trans = torch.exp(_exclusive_segment_cumsum(log_t, ray_of, n))
     keep = trans >= stop
-    return None if bool(keep.all()) else keep.nonzero().squeeze(-1)
+    return (None if bool(keep.all()) else keep.nonzero().squeeze(-1)), reads
 
 
 def _exclusive_segment_cumsum(v: torch.Tensor, seg: torch.Tensor, n_seg: int) -> torch.Tensor:
@@ -261,8 +268,7 @@ def _exclusive_segment_cumsum(v: torch.Tensor, seg: torch.Tensor, n_seg: int) ->
 
 @torch.no_grad()
 def render_image(field, pose: torch.Tensor, height: int, width: int, focal_px, chunk: int = 8192,
-                 far: float | None = None, background: float = BACKGROUND, space=None,
-                 stop: float = STOP_TRANSMITTANCE):
+                 far: float | None = None, background: float = BACKGROUND, space=None):
     """Luminance ``[H, W]`` and opacity ``[H, W]`` of a full view (pose ``[4, 4]``; ``focal_px`` as
     :func:`pixel_rays` takes it), and with ``far`` given, depth ``[H, W]`` too (see :func:`render_rays`).
 
@@ -277,10 +283,9 @@ def render_image(field, pose: torch.Tensor, height: int, width: int, focal_px, c
         pix = torch.arange(a, min(P, a + chunk), device=pose.device)
         o, d = pixel_rays(pose.expand(pix.shape[0], 4, 4), pix, height, width, focal_px)
         if space is None:
-            chunks.append(render_rays(field, o, d, background=background, far=far, stop=stop))
+            chunks.append(render_rays(field, o, d, background=background, far=far))
             continue
-        maps, (o_ndc, d_ndc, length) = render_ndc_rays(field, space, o, d, background=background, far=far is not None,
-                                                       stop=stop)
+        maps, (o_ndc, d_ndc, length) = render_ndc_rays(field, space, o, d, background=background, far=far is not None)
         if far is not None:  # distance along the NDC ray -> its z
             maps = (*maps[:2], torch.where(length > 0, o_ndc[:, 2] + maps[2] * d_ndc[:, 2], torch.ones_like(length)))
         chunks.append(maps)
