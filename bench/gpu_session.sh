@@ -13,6 +13,8 @@
 #   baselines  the other methods at rsir i32, seed 0
 #   converge   spikelik with 27000 iterations (converged at 9000 if within 0.3 dB)
 #   converge81 spikelik with 81000 iterations (converged at 27000?); resumes across calls on a warm machine
+#   stop       early ray termination on the GPU: spikelik, rsir i32 400 x 400, 3000 iterations, with the
+#              default --stop-transmittance and with 0; prints each run's training seconds
 # Rows go to OUT/protocol_gpu.jsonl (bench/bench_protocol.py --results), which starts as a copy of
 # bench/results/protocol_gpu.jsonl, so runs recorded there are skipped; copy it back afterwards.
 # Work folders stay in bench_out/protocol, so a run cut by the budget resumes in a later call.
@@ -23,7 +25,7 @@ BUDGET=${3:-540}
 shift $(( $# < 3 ? $# : 3 ))
 STAGES=${*:-tests spikelik profile baselines converge}
 for st in $STAGES; do
-    case $st in tests|spikelik|profile|baselines|converge|converge81) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+    case $st in tests|spikelik|profile|baselines|converge|converge81|stop) ;; *) echo "unknown stage $st"; exit 2 ;; esac
 done
 T0=$(date +%s)
 mkdir -p "$OUT"
@@ -58,6 +60,17 @@ torch.__version__, 'cuda', torch.version.cuda)"
 P="python3 bench/bench_protocol.py --resolution 400 --sensors rsir --intensities 32 --device cuda --workers $(nproc)
    --results $OUT/protocol_gpu.jsonl --out bench_out/protocol"
 RUN=bench_out/protocol/runs_400/lego_rsir_32_spikelik_true-maps_400_0_9000_0_grid-fitted-box
+export DATA=bench_out/protocol/data_lego_rsir_400/nerf_synthetic_lego_400_i32
+stop_ab() {  # the same 3000-iteration run with the default threshold and without (needs DATA: spikelik first)
+    for s in default 0; do
+        local opt=(); [ $s = 0 ] && opt=(--stop-transmittance 0)
+        spikenerf train $DATA --iters 3000 --device cuda --quiet "${opt[@]}" --out "bench_out/stop_ab_$s" || return 1
+        python3 -c "import sys, torch; ck = torch.load(sys.argv[1] + '/checkpoint.pt', map_location='cpu', \
+weights_only=False); print('stop', sys.argv[2], 'iterations', ck['iteration'], 'train s', round(ck['train_seconds'], 1))" \
+            "bench_out/stop_ab_$s" $s
+    done
+}
+export -f stop_ab
 for st in $STAGES; do
     case $st in
         tests) stage gpu_tests python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_trainer_gpu.py ;;
@@ -69,9 +82,10 @@ for st in $STAGES; do
                        --seeds 0 ;;
         converge) stage protocol_27000 $P --methods spikelik --seeds 0 --iters 27000 ;;
         converge81) stage protocol_81000 $P --methods spikelik --seeds 0 --iters 81000 ;;
+        stop) if [ -d "$DATA" ]; then stage stop_ab bash -c stop_ab
+              else echo "stop: no $DATA here (run the spikelik stage first)"; fi ;;
     esac
 done
-DATA=bench_out/protocol/data_lego_rsir_400/nerf_synthetic_lego_400_i32
 if [ -n "${REF_MANIFEST:-}" ] && [ -f $DATA/manifest.json ]; then  # the dataset made here against one made elsewhere
     python3 -c "import json, sys; a, b = (json.load(open(f))['files'] for f in sys.argv[1:]); \
 print('dataset files', len(a), 'identical to the reference' if a == b else 'DIFFER from the reference:', \
