@@ -55,6 +55,9 @@ PSNR at 9000 and 27.11 at 27000 iterations (bench/results/trainer_scale_20261125
 so every 400 x 400 row here compares methods at the same, unconverged budget. The oracle (ground-truth
 images) gains the same from 9000 to 27000 iterations there (26.66 to 27.94;
 bench/results/trainer_scale_oracle_20261126.json): the budget holds back the field, spike-fed or not.
+Rows made before commit 8bf158d trained without early ray termination (`--stop-transmittance`, now
+1e-4): on the procedural lego it moved no score by more than 0.01 dB at 100 x 100 or 400 x 400
+(docs/trainer.md, "Early ray termination"), so rows from before and after it sit in the same tables.
 
 **Procedural scenes** (the paper's Table S2 shape, at the CI scale): chair, ficus, hotdog, materials
 and mic, made by `spikegen render --scene S --views 100,0,50 --resolution 100` (Blender, the camera
