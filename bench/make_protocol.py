@@ -346,7 +346,10 @@ def main() -> None:
                   "oracle's margin over the port: the same field fitted to the ground-truth images "
                   "themselves, a practical ceiling (measured, not a bound) on what a better spike objective "
                   "can gain with this field. Where it is below 3 dB, the first target needs a better field, "
-                  "not only a better objective.", ""]
+                  "not only a better objective. On the `paper` sensor (static views from an integrate-and-fire "
+                  "sensor without shot noise) `spikenerf` supervises with the same statistic as the default, so "
+                  "the two tie by construction (docs/trainer.md, \"Methods\"): the second target cannot be met "
+                  "there against it.", ""]
     gpu = [r for r in load(GPU_RESULTS) if r.get("field", OLD_FIELD) == FIELD]
     if gpu:
         lines += ["## On a GPU (bench/results/protocol_gpu.jsonl; bench/gpu_session.sh)", "",
