@@ -234,13 +234,9 @@ def trained_table(run: str, reps: int) -> None:
     print(f"load average {os.getloadavg()[0]:.2f} at end; outputs and gradients equal to the bit")
 
 
-def training_step_table(run: str, reps: int) -> None:
-    """A trained run's field: whole training steps (its rays, render, loss, prior, zero_grad, backward,
-    Adam) the trainer's way now -- corner reads adding into the kept ``grid.grad`` -- and the way it
-    was before 2026-11-25 -- reads through ``grid_sample``, the prior's block by slicing, autograd's
-    grid-sized gradients, ``zero_grad(set_to_none=True)`` -- on two copies of the field with their
-    own Adam, the same rays, interleaved. Prints the median wall and CPU time of each and their ratio,
-    and the largest difference of the two copies' grids after the steps (float rounding only)."""
+def _training_setup(run: str):
+    """A trained run's checkpoint, settings, dataset, size, method, camera and the training batch
+    (the trainer's own targets), for timing whole training steps on its field."""
     import os
 
     from spikenerf import train as T
@@ -250,17 +246,34 @@ def training_step_table(run: str, reps: int) -> None:
     from spikenerf.targets import build_targets
 
     ck = T.load_checkpoint(os.path.join(run, "checkpoint.pt"), "cpu")
-    cfg = TrainConfig(**{k: tuple(v) if k == "upsample_at" else v for k, v in ck["config"].items()})
+    known = TrainConfig.__dataclass_fields__  # (a checkpoint from before an option lacks its key)
+    cfg = TrainConfig(**{k: tuple(v) if k == "upsample_at" else v for k, v in ck["config"].items() if k in known})
     ds = load_dataset(cfg.dataset)
     H, W = T._resolution(ds, cfg.resolution)
     method = METHODS[cfg.method]
     batch = T.Batch(build_targets(ds, method, H, W, progress=False, frames=cfg.frames, windows=cfg.windows,
                                   maps_file=cfg.sensor_maps or None), torch.device("cpu"))
-    focal, bg = ds.camera(H, W), ds.background
+    return ck, cfg, ds, (H, W), method, batch, (ds.camera(H, W), ds.background)
+
+
+def training_step_table(run: str, reps: int) -> None:
+    """A trained run's field: whole training steps (its rays, render, loss, prior, zero_grad, backward,
+    Adam) the trainer's way now -- corner reads adding into the kept ``grid.grad`` -- and the way it
+    was before 2026-11-25 -- reads through ``grid_sample``, the prior's block by slicing, autograd's
+    grid-sized gradients, ``zero_grad(set_to_none=True)`` -- on two copies of the field with their
+    own Adam, the same rays, interleaved; both with the trainer's early ray termination (the old way
+    reads the kept samples through ``grid_sample``), so only the reads differ. Prints the median wall
+    and CPU time of each and their ratio, and the largest difference of the two copies' grids after the
+    steps (float rounding only)."""
+    import os
+
+    from spikenerf import train as T
+
+    ck, cfg, ds, (H, W), method, batch, (focal, bg) = _training_setup(run)
     fields = {way: T.field_from_checkpoint(ck, "cpu") for way in ("now", "before")}
     opts = {way: T.make_optimizer(f, cfg) for way, f in fields.items()}
     before = fields["before"]
-    before._read = lambda grid, points: M._trilinear(grid, before.normalise(points))  # grid_sample + autograd
+    before._read = lambda grid, points, reads=None: M._trilinear(grid, before.normalise(points))  # grid_sample
     block_read = M._BlockRead.apply
 
     def step(way: str, it: int) -> None:
@@ -302,21 +315,9 @@ def termination_table(run: str, reps: int) -> None:
     import os
 
     from spikenerf import train as T
-    from spikenerf.config import TrainConfig
-    from spikenerf.data import load_dataset
-    from spikenerf.methods import METHODS
-    from spikenerf.targets import build_targets
+    from spikenerf.config import STOP_TRANSMITTANCE as stop
 
-    ck = T.load_checkpoint(os.path.join(run, "checkpoint.pt"), "cpu")
-    known = TrainConfig.__dataclass_fields__
-    cfg = TrainConfig(**{k: tuple(v) if k == "upsample_at" else v for k, v in ck["config"].items() if k in known})
-    ds = load_dataset(cfg.dataset)
-    H, W = T._resolution(ds, cfg.resolution)
-    method = METHODS[cfg.method]
-    batch = T.Batch(build_targets(ds, method, H, W, progress=False, frames=cfg.frames, windows=cfg.windows,
-                                  maps_file=cfg.sensor_maps or None), torch.device("cpu"))
-    focal, bg = ds.camera(H, W), ds.background
-    stop = TrainConfig.stop_transmittance
+    ck, cfg, ds, (H, W), method, batch, (focal, bg) = _training_setup(run)
     fields = {s: T.field_from_checkpoint(ck, "cpu") for s in (0.0, stop)}
     opts = {s: T.make_optimizer(f, cfg) for s, f in fields.items()}
     field = fields[0.0]
@@ -329,15 +330,14 @@ def termination_table(run: str, reps: int) -> None:
             img, pix, jitter = batch.draw(cfg.batch_rays, T.iteration_generator(cfg.seed, it))
             o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
             _, ray_of, pts = R._occupied_samples(field, o, d, step_len, jitter)
-            log_t = -(field.density(pts)[0] * (step_len / field.ref_voxel)).clamp(max=30.0)
-            trans = torch.exp(R._exclusive_segment_cumsum(log_t, ray_of, o.shape[0]))
+            trans = R.sample_transmittance(field, ray_of, pts, o.shape[0], step_len)[0]
             total += trans.numel()
             for t in behind:
                 behind[t] += int((trans < t).sum())
     print(f"{'occupied samples a ray':>36}: {total / (10 * cfg.batch_rays):.1f}; behind transmittance " +
           ", ".join(f"{t:g}: {100 * v / total:.1f} %" for t, v in behind.items()) + " (10 batches)")
 
-    def train_step(s: float, it: int) -> None:
+    def train_step(s: float, it: int) -> torch.Tensor:  # the rays' luminance
         gen = T.iteration_generator(cfg.seed, it)
         img, pix, jitter = batch.draw(cfg.batch_rays, gen)
         o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
@@ -375,7 +375,8 @@ def main() -> None:
     args = ap.parse_args()
     if args.run:
         for run in args.run:
-            (termination_table if args.stop else training_step_table if args.step else trained_table)(run, args.reps)
+            table = termination_table if args.stop else training_step_table if args.step else trained_table
+            table(run, args.reps)
         if args.only is None:
             return
     tables = {"trilinear": trilinear_table, "candidates": candidates_table, "grid-step": grid_step_table}

@@ -89,8 +89,8 @@ def main():
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, windows, sensor_maps, out, seed, batch_rays, lr_grid,
           lr_decay, sh_degree,
-          grid_final, fit_box, space, stop_transmittance, tv_weight, tv_points, lazy_above, checkpoint_every, do_eval,
-          quiet):
+          grid_final, fit_box, space, stop_transmittance, tv_weight, tv_points, lazy_above, checkpoint_every,
+          do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
 
@@ -100,7 +100,8 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
                       frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
                       sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, stop_transmittance=stop_transmittance,
-                      tv_weight=tv_weight, tv_points=tv_points, space=space, lazy_above=lazy_above, checkpoint_every=checkpoint_every,
+                      tv_weight=tv_weight, tv_points=tv_points, space=space, lazy_above=lazy_above,
+                      checkpoint_every=checkpoint_every,
                       sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
                       else "")
     ck = run_train(cfg, out, progress=not quiet, log=lambda m: click.echo(m, err=True))

@@ -20,6 +20,7 @@ from __future__ import annotations
 import torch
 from spikegen.lens import undistort_scale
 
+from .config import STOP_TRANSMITTANCE
 from .model import COARSE
 
 BACKGROUND = 1.0  # transparent film composited onto white (X = 1), as the dataset's ground truth
@@ -29,11 +30,6 @@ NEAR_T = 0.05  # world rays are sampled from this distance on (rays in NDC start
 # with every stretch kept, the two passes took 1.8 times as long as the one; docs/trainer.md)
 SKIP_MAX_KEPT = 0.8
 SKIP_REPROBE = 16  # after such a hand-back, the block pass is tried again on every 16th call only
-# in training, samples a ray reaches with less transmittance than this are not rendered (Instant-NGP's
-# early ray termination threshold): what they could add to a pixel is below it, and so is the gradient
-# they give the samples in front; on trained 400 x 400 lego fields they are about 44 % of the occupied
-# samples (docs/trainer.md, "Early ray termination"). 0 renders every occupied sample.
-STOP_TRANSMITTANCE = 1e-4
 
 
 def pixel_rays(poses: torch.Tensor, pix: torch.Tensor, height: int, width: int, focal_px):
@@ -243,16 +239,22 @@ def _skip_blocks(field, origins, dirs, step, off, t_in, t_out, n_samp: int, seg:
 
 
 @torch.no_grad()
-def visible_samples(field, ray_of: torch.Tensor, pts: torch.Tensor, n: int, step: float, stop: float):
-    """Early ray termination: the index of the packed samples (sorted by ray, as
-    :func:`_occupied_samples` gives them) that their ray reaches with transmittance >= ``stop`` (None
-    when that is all of them), and the field's reads of all the samples (``density``). The
-    transmittance comes from a pass over the field's density alone, without gradients. Every sample dropped lies behind one with transmittance < ``stop`` on its ray, so
-    the dropped samples add less than ``stop`` to the pixel's luminance and opacity, and the gradient
-    they give a sample in front (through its transmittance) is that small too."""
+def sample_transmittance(field, ray_of: torch.Tensor, pts: torch.Tensor, n: int, step: float):
+    """The transmittance ``[m]`` with which each packed sample (sorted by ray, as
+    :func:`_occupied_samples` gives them; ``n`` rays) is reached, from the field's density alone,
+    without gradients, and the field's reads of the samples (``density``)."""
     sigma, reads = field.density(pts)
     log_t = -(sigma * (step / field.ref_voxel)).clamp(max=30.0)
-    trans = torch.exp(_exclusive_segment_cumsum(log_t, ray_of, n))
+    return torch.exp(_exclusive_segment_cumsum(log_t, ray_of, n)), reads
+
+
+def visible_samples(field, ray_of: torch.Tensor, pts: torch.Tensor, n: int, step: float, stop: float):
+    """Early ray termination: the index of the packed samples that their ray reaches with
+    transmittance >= ``stop`` (None when that is all of them), and the field's reads of all the
+    samples (:func:`sample_transmittance`). Every sample dropped lies behind one with transmittance
+    < ``stop`` on its ray, so the dropped samples add less than ``stop`` to the pixel's luminance and
+    opacity, and the gradient they give a sample in front (through its transmittance) is that small too."""
+    trans, reads = sample_transmittance(field, ray_of, pts, n, step)
     keep = trans >= stop
     return (None if bool(keep.all()) else keep.nonzero().squeeze(-1)), reads
 
