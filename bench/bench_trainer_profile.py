@@ -7,19 +7,33 @@ training loop's own clock in the checkpoint, so loading the data and saving are 
 printed. The run's own settings are kept; only the iteration count grows (its learning-rate
 schedule is stretched over the longer run, which does not change the work per step).
 
-    python bench/bench_trainer_profile.py RUN [--steps 200] [--device cuda] [--rows 25]
+``--count N`` adds N more steps under a dispatch-mode counter (``HostCounter``) and prints, per
+step: the operators dispatched, the host reads of tensor values (``.item()``, ``float()``,
+``bool()``, ``nonzero``, boolean-mask indexing: on a GPU each waits for the device to finish
+what was queued) and the tensors made from host data (``torch.tensor``, ``new_tensor``, a copy
+from the CPU to another device: on a GPU each is a host-to-device transfer), each with the
+lines of the trainer that make them. These are counts, the same on any machine; the same code
+makes them on a GPU, so they can be read on the CPU. On the CPU they include the backward's
+operators; on a GPU autograd runs the backward on a thread of its own, which the counter does
+not see.
+
+    python bench/bench_trainer_profile.py RUN [--steps 200] [--device cuda] [--rows 25] [--count 10]
 """
 from __future__ import annotations
 
 import argparse
+import collections
 import dataclasses
 import json
 import os
 import shutil
 import tempfile
+import traceback
+import weakref
 from pathlib import Path
 
 import torch
+from torch.utils._python_dispatch import TorchDispatchMode
 
 from spikenerf.config import TrainConfig
 from spikenerf.train import train
@@ -34,12 +48,89 @@ def continue_run(out: Path, cfg: TrainConfig, until: int) -> None:
     train(dataclasses.replace(cfg, iters=until), out, progress=False, log=lambda m: None)
 
 
+# operators that read a tensor's values on the host: on a GPU each waits for the device (a sync)
+_HOST_READS = {"aten._local_scalar_dense.default", "aten.nonzero.default", "aten.masked_select.default",
+               "aten.is_nonzero.default", "aten.equal.default"}
+
+
+class HostCounter(TorchDispatchMode):
+    """Counts dispatched operators, host reads of tensor values and tensors made from host data,
+    the last two by the trainer's line that makes them (``sites``)."""
+
+    def __init__(self):
+        super().__init__()
+        self.ops = 0
+        self.reads = collections.Counter()
+        self.uploads = collections.Counter()
+        # tensors drawn from a torch.Generator or made from such alone (``int(draw)`` reads a
+        # detached alias), by id (an entry goes when its tensor does, so no id is mistaken): the
+        # trainer's generators are on the CPU on every device, so reading these costs no wait (not counted)
+        self.drawn = weakref.WeakValueDictionary()
+
+    def __enter__(self):
+        # Tensor.tolist reads the values without dispatching an operator on the CPU: counted here
+        self._tolist = torch.Tensor.tolist
+        counter, tolist = self, self._tolist
+
+        def counted(t, *a, **k):
+            if id(t) not in counter.drawn:
+                counter.reads[counter._site()] += 1
+            return tolist(t, *a, **k)
+        torch.Tensor.tolist = counted
+        return super().__enter__()
+
+    def __exit__(self, *exc):
+        torch.Tensor.tolist = self._tolist
+        return super().__exit__(*exc)
+
+    @staticmethod
+    def _site() -> str:
+        frames = [f for f in traceback.extract_stack() if "spikenerf" in f.filename or "spikegen" in f.filename]
+        return f"{Path(frames[-1].filename).name}:{frames[-1].lineno} {frames[-1].name}" if frames else "(other)"
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        kwargs = kwargs or {}
+        self.ops += 1
+        name = str(func)
+        bool_index = name.startswith("aten.index") and any(
+            isinstance(i, torch.Tensor) and i.dtype == torch.bool for a in args[1:2] if isinstance(a, (list, tuple))
+            for i in a)
+        if (name in _HOST_READS or bool_index) and not (args and isinstance(args[0], torch.Tensor)
+                                                         and id(args[0]) in self.drawn):
+            self.reads[self._site()] += 1
+        out = func(*args, **kwargs)
+        inputs = [a for a in args if isinstance(a, torch.Tensor)]
+        if isinstance(out, torch.Tensor) and (kwargs.get("generator") is not None or (
+                inputs and all(id(a) in self.drawn for a in inputs))):  # a draw, or made from draws alone
+            self.drawn[id(out)] = out
+        if name == "aten.lift_fresh.default" or (
+                name in ("aten._to_copy.default", "aten.copy_.default") and isinstance(out, torch.Tensor)
+                and out.device.type != "cpu" and any(isinstance(a, torch.Tensor) and a.device.type == "cpu"
+                                                     for a in args)):
+            self.uploads[self._site()] += 1
+        return out
+
+
+def count_host_work(out: Path, cfg: TrainConfig, start: int, steps: int) -> None:
+    """Print what :class:`HostCounter` sees per step over ``steps`` steps from ``start``."""
+    counter = HostCounter()
+    with counter:
+        continue_run(out, cfg, start + steps)
+    print(f"per step over {steps} steps: {counter.ops / steps:.1f} operators dispatched, "
+          f"{sum(counter.reads.values()) / steps:.1f} host reads of tensor values, "
+          f"{sum(counter.uploads.values()) / steps:.1f} tensors from host data")
+    for title, table in (("host reads", counter.reads), ("tensors from host data", counter.uploads)):
+        for site, n in table.most_common():
+            print(f"  {title:>22}  {n / steps:5.1f}  {site}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("run", type=Path, help="a finished spikenerf run folder (config.json + checkpoint.pt)")
     ap.add_argument("--steps", type=int, default=200, help="iterations to add: half timed, half profiled")
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"])
     ap.add_argument("--rows", type=int, default=25, help="operators in the table")
+    ap.add_argument("--count", type=int, default=0, help="steps more under the host-work counter (0: none)")
     args = ap.parse_args()
     saved = json.loads((args.run / "config.json").read_text())
     keys = {f.name for f in dataclasses.fields(TrainConfig)}
@@ -67,6 +158,8 @@ def main() -> None:
             acts.append(torch.profiler.ProfilerActivity.CUDA)
         with torch.profiler.profile(activities=acts) as prof:
             continue_run(out, cfg, done + 5 + 2 * half)
+        if args.count:
+            count_host_work(out, cfg, done + 5 + 2 * half, args.count)
     key = "self_cuda_time_total" if args.device == "cuda" else "self_cpu_time_total"
     print(prof.key_averages().table(sort_by=key, row_limit=args.rows))
 

@@ -76,7 +76,7 @@ for st in $STAGES; do
         tests) stage gpu_tests python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_trainer_gpu.py ;;
         spikelik) stage protocol_9000 $P --methods spikelik --seeds 0 ;;
         profile) if [ -f "$RUN/checkpoint.pt" ]; then
-                     stage profile python3 bench/bench_trainer_profile.py "$RUN" --steps 200 --device cuda
+                     stage profile python3 bench/bench_trainer_profile.py "$RUN" --steps 200 --device cuda --count 20
                  else echo "profile: no $RUN here (run the spikelik stage first)"; fi ;;
         baselines) stage protocol_baselines $P --methods tfi,spikenerf-paper,spikenerf,spikenerf-noR,tfp256,tfp32 \
                        --seeds 0 ;;

@@ -153,6 +153,39 @@ def test_nan_loss_stops_and_keeps_last_checkpoint(dataset, tmp_path, monkeypatch
     assert (run / "checkpoint.pt").read_bytes() == good  # the last good checkpoint is kept
 
 
+def test_on_a_gpu_the_loss_check_waits_on_the_device_and_names_the_first_bad_iteration(dataset, tmp_path,
+                                                                                     monkeypatch):
+    """A GPU run keeps the loss check on the device (train.LossGuard, deferred): it stops at the next
+    read (every 10 iterations, and before any save), names the first non-finite iteration and keeps
+    the last good checkpoint. Run here on the CPU with the deferred guard forced."""
+    run = tmp_path / "nan"
+    train(_cfg(dataset, iters=5, checkpoint_every=1), run, progress=False, log=lambda m: None)
+    good = (run / "checkpoint.pt").read_bytes()
+    method_loss, calls = train_module.method_loss, []
+
+    def poisoned(*args, **kw):  # infinite from the third resumed iteration on (iteration 7)
+        loss, pred, obs = method_loss(*args, **kw)
+        calls.append(1)
+        return (loss * float("inf") if len(calls) >= 3 else loss), pred, obs
+
+    class Deferred(train_module.LossGuard):
+        def __init__(self, device, ck_path):
+            super().__init__(device, ck_path)
+            self.deferred = True
+
+    monkeypatch.setattr(train_module, "method_loss", poisoned)
+    monkeypatch.setattr(train_module, "LossGuard", Deferred)
+    with pytest.raises(TrainError, match="infinite at iteration 7;"):
+        train(_cfg(dataset, iters=30, checkpoint_every=1000), run, progress=False, log=lambda m: None)
+    assert len(calls) == 6  # iterations 5 to 10: the read at iteration 10 stopped it
+    assert (run / "checkpoint.pt").read_bytes() == good
+    calls.clear()
+    with pytest.raises(TrainError, match="infinite at iteration 7;"):  # before a save, too
+        train(_cfg(dataset, iters=30, checkpoint_every=1), run, progress=False, log=lambda m: None)
+    assert len(calls) == 3 and (run / "checkpoint.pt").read_bytes() != good  # saved after 5 and 6, not after 7
+    assert torch.load(run / "checkpoint.pt", weights_only=False)["iteration"] == 7
+
+
 def test_not_a_dataset_is_one_clear_line(tmp_path):
     res = CliRunner().invoke(main, ["train", str(tmp_path), "--out", str(tmp_path / "r")])
     assert res.exit_code == 2

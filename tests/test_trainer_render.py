@@ -313,6 +313,33 @@ def test_a_cropped_box_grows_with_cubic_voxels_and_round_trips():
         assert torch.equal(render_rays(f, o, d)[0], render_rays(g, o, d)[0])
 
 
+def test_the_kept_voxel_edge_follows_every_change_of_the_box():
+    """GridField.voxel is kept between calls (a read of the box waits for a GPU): it must follow a crop,
+    a growth, a box loaded in place and a box replaced."""
+    def edge(f):
+        return float((f.aabb[1, 0] - f.aabb[0, 0]) / (f.dims[0] - 1))
+
+    f = _cube_field(0.6)
+    f.update_occupancy(1e-3)
+    assert f.voxel == edge(f)
+    f.crop(torch.tensor([-0.6, -0.6, -0.9]), torch.tensor([0.6, 0.6, 0.9]))
+    assert f.voxel == edge(f)
+    f.upsample(65)
+    assert f.voxel == edge(f) == pytest.approx(3 / 64)
+    g = GridField(**f.config())
+    assert g.voxel == f.voxel
+    state = f.state_dict()
+    state["aabb"] = state["aabb"] * 2
+    box = g.aabb
+    g.load_state_dict(state)  # a box twice the size, copied in place (the same tensor, a new version)
+    assert g.aabb is box and g.voxel == pytest.approx(2 * f.voxel)
+    with torch.no_grad():
+        g.aabb.mul_(0.5)  # halved in place
+    assert g.voxel == f.voxel
+    g.aabb = f.aabb * 3  # replaced
+    assert g.voxel == pytest.approx(3 * f.voxel)
+
+
 def test_tv_at_points_is_the_neighbour_differences_where_the_step_read():
     f = GridField(grid_size=5, final_size=5, bound=1.0)
     with torch.no_grad():

@@ -25,6 +25,7 @@ adding into ``grid.grad``, so that a step's work follows the rays, not the grid 
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import torch
@@ -113,8 +114,15 @@ class GridField(nn.Module):
 
     @property
     def voxel(self) -> float:
-        """Edge of a (cubic) voxel of the current grid, world units."""
-        return float((self.aabb[1, 0] - self.aabb[0, 0]) / (self.dims[0] - 1))
+        """Edge of a (cubic) voxel of the current grid, world units. Kept until the box or the grid
+        changes: a training step asks for it several times, and on a GPU each reading of the box's
+        values is a wait for the device (bench/bench_trainer_profile.py --count)."""
+        a, n = self.aabb, self.grid.shape[2]
+        cached = getattr(self, "_voxel_cache", None)
+        if cached is None or cached[0] is not a or cached[1] != a._version or cached[2] != n:
+            cached = (a, a._version, n, float((a[1, 0] - a[0, 0]) / (n - 1)))
+            self._voxel_cache = cached
+        return cached[3]
 
     @property
     def ref_voxel(self) -> float:
@@ -187,7 +195,7 @@ class GridField(nn.Module):
         """Float indices [M, 3] of the grid point nearest each world point, clamped into the grid
         (points outside the grid's box get the nearest face's)."""
         X, Y, Z = self.dims
-        top = points.new_tensor([X - 1, Y - 1, Z - 1])
+        top = _constant((X - 1, Y - 1, Z - 1), points.dtype, points.device)
         cell = ((points - self.aabb[0]) * (1 / self.voxel)).round_().clamp_(min=0)
         return torch.minimum(cell, top)
 
@@ -198,7 +206,7 @@ class GridField(nn.Module):
         cell = self._cell(points)
         if X * Y * Z > 2 ** 24:  # the flat index below is exact in float32 only up to 2^24
             cell = cell.double()
-        flat = (cell @ cell.new_tensor([Y * Z, Z, 1.0])).long()  # one dot product
+        flat = (cell @ _constant((Y * Z, Z, 1.0), cell.dtype, cell.device)).long()  # one dot product
         return self.occupancy.reshape(-1).index_select(0, flat)  # (index_select: gathers faster than [flat])
 
     def coarse_occupied(self, points: torch.Tensor) -> torch.Tensor:
@@ -214,7 +222,7 @@ class GridField(nn.Module):
         blocks = self._coarse_mask()
         Xc, Yc, Zc = blocks.shape
         b = torch.div(self._cell(points), COARSE, rounding_mode="floor")
-        flat = (b @ b.new_tensor([Yc * Zc, Zc, 1.0])).long()  # exact: blocks are 1/COARSE^3 of the grid
+        flat = (b @ _constant((Yc * Zc, Zc, 1.0), b.dtype, b.device)).long()  # exact: blocks are 1/COARSE^3 of the grid
         return blocks.reshape(-1).index_select(0, flat)
 
     def _coarse_mask(self) -> torch.Tensor:
@@ -455,7 +463,15 @@ class _BlockRead(torch.autograd.Function):
         return None, None
 
 
-_CORNER_BITS = torch.tensor([[d, h, w] for d in (0, 1) for h in (0, 1) for w in (0, 1)], dtype=torch.bool)  # [8, 3]
+@functools.lru_cache(maxsize=256)
+def _constant(values: tuple, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    """A small constant tensor on ``device``, made once: ``torch.tensor(values)`` in a training step
+    is, on a GPU, a transfer from the host each time (bench/bench_trainer_profile.py --count).
+    Read only: callers never write into it."""
+    return torch.tensor(values, dtype=dtype, device=device)
+
+
+_CORNER_DHW = [(d, h, w) for d in (0, 1) for h in (0, 1) for w in (0, 1)]  # corner k = 4 d + 2 h + w
 
 
 def corners(unit: torch.Tensor, dims) -> tuple[torch.Tensor, torch.Tensor]:
@@ -473,13 +489,15 @@ def _corners_by_corner(unit: torch.Tensor, dims) -> tuple[torch.Tensor, torch.Te
     """:func:`corners` laid out corner by corner: flat index ``[8, M]`` and weights ``[8, M]`` (each
     row a contiguous run over the points, which keeps the products and gathers vectorised)."""
     X, Y, Z = (dims,) * 3 if isinstance(dims, int) else (int(n) for n in dims)
-    top = unit.new_tensor([X - 1, Y - 1, Z - 1])
+    top = _constant((X - 1, Y - 1, Z - 1), unit.dtype, unit.device)
     pos = torch.minimum(((unit + 1) * (0.5 * top)).clamp_(min=0), top)
     base = torch.minimum(pos.floor(), top - 1)
     frac = (pos - base).t().contiguous()  # [3, M] in [0, 1]
-    stride = torch.tensor([Y * Z, Z, 1], device=unit.device)
+    stride = _constant((Y * Z, Z, 1), torch.int64, unit.device)
     flat0 = (base.long() * stride).sum(-1)  # [M] (no integer matmul: CUDA has none)
-    idx = flat0[None, :] + (_CORNER_BITS.to(unit.device).long() * stride).sum(-1)[:, None]  # [8, M]
+    offsets = _constant(tuple(Y * Z * d + Z * h + w for d, h, w in _CORNER_DHW), torch.int64,
+                        unit.device)  # [8]: corner k's flat offset from corner 0
+    idx = flat0[None, :] + offsets[:, None]  # [8, M]
     # corner (d, h, w) weighs wx[d] * wy[h] * wz[w], multiplied in that order
     (fx, fy, fz), (gx, gy, gz) = frac, 1 - frac
     xy = [gx * gy, gx * fy, fx * gy, fx * fy]

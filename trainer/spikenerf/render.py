@@ -153,9 +153,15 @@ def _occupied_samples(field, origins, dirs, step, jitter, broadcast: bool | None
     n = origins.shape[0]
     t_in, t_out = box_interval(origins, dirs, field.box, near)
     span = (t_out - t_in).clamp(min=0)
-    n_samp = max(1, int(torch.ceil(span.max() / step).item()))
+    coarse = coarse and hasattr(field, "coarse_occupied")
+    # the host's one read of the rays' values (on a GPU each read waits for the device): the samples
+    # the longest ray needs, the span summed (``broadcast`` below) and the longest direction
+    # (:func:`_segment_length`), each the value its own ``float()`` would give
+    host = torch.stack([torch.ceil(span.max() / step), span.sum()] +
+                       ([dirs.norm(dim=-1).max()] if coarse else [])).tolist()
+    n_samp = max(1, int(host[0]))
     off = torch.full((n,), 0.5, device=origins.device) if jitter is None else jitter
-    seg = _segment_length(field, dirs, step) if coarse else 0
+    seg = _segment_length(field, dirs, step, host[2]) if coarse else 0
     if seg > 1 and n_samp >= 2 * seg and _worth_skipping(field):
         packed = _skip_blocks(field, origins, dirs, step, off, t_in, t_out, n_samp, seg)
         if packed is not None:
@@ -164,7 +170,7 @@ def _occupied_samples(field, origins, dirs, step, jitter, broadcast: bool | None
     t = t_in[:, None] + step * (k[None, :] + off[:, None])  # [n, S]
     inside = (t < t_out[:, None]).view(-1)
     if broadcast is None:  # (span / step: about the candidates inside)
-        broadcast = 2 * float(span.sum()) > step * inside.numel()
+        broadcast = 2 * host[1] > step * inside.numel()
     if broadcast:
         # most candidates are inside the box (a field spread through it): computing every
         # candidate's point by broadcasting and testing them all is cheaper than gathering the
@@ -176,20 +182,22 @@ def _occupied_samples(field, origins, dirs, step, jitter, broadcast: bool | None
     idx = inside.nonzero().squeeze(-1)
     ray_of = torch.div(idx, n_samp, rounding_mode="floor")
     pts = origins.index_select(0, ray_of) + t.view(-1)[idx, None] * dirs.index_select(0, ray_of)
-    occ = field.occupied(pts)
-    return idx[occ], ray_of[occ], pts[occ]
+    occ = field.occupied(pts).nonzero().squeeze(-1)  # (one read; a boolean mask would read once per tensor)
+    return idx.index_select(0, occ), ray_of.index_select(0, occ), pts.index_select(0, occ)
 
 
-def _segment_length(field, dirs, step) -> int:
+def _segment_length(field, dirs, step, longest: float | None = None) -> int:
     """Samples per stretch for :func:`_skip_blocks` (0: the field has no block mask).
 
     A stretch's samples lie within ``(seg - 1) * step * |dir|`` of its first one; in grid
     points (of edge ``field.voxel``) that is at most ``COARSE - 1.5``, so after rounding to the
     nearest grid point (at most one more) their indices stay within ``COARSE`` of the first
-    sample's, as ``coarse_occupied`` requires (0.5 to spare for float error)."""
+    sample's, as ``coarse_occupied`` requires (0.5 to spare for float error). ``longest``: the
+    largest norm of ``dirs`` if already read."""
     if not hasattr(field, "coarse_occupied"):
         return 0
-    spacing = step * float(dirs.norm(dim=-1).max()) / field.voxel  # grid points between samples
+    longest = float(dirs.norm(dim=-1).max()) if longest is None else longest
+    spacing = step * longest / field.voxel  # grid points between samples
     return int((COARSE - 1.5) / spacing) + 1 if spacing > 0 else 0
 
 
@@ -219,13 +227,13 @@ def _skip_blocks(field, origins, dirs, step, off, t_in, t_out, n_samp: int, seg:
     cand = (t0 < t_out[:, None]).view(-1).nonzero().squeeze(-1)  # stretches that start inside the box
     ray = torch.div(cand, n_seg, rounding_mode="floor")
     pts = origins.index_select(0, ray) + t0.view(-1)[cand, None] * dirs.index_select(0, ray)
-    kept = field.coarse_occupied(pts)
-    full = bool(kept.sum() > SKIP_MAX_KEPT * kept.numel())
+    kept = field.coarse_occupied(pts).nonzero().squeeze(-1)  # (one read of the mask)
+    full = kept.numel() > SKIP_MAX_KEPT * pts.shape[0]
     field._skip_probe = (field.occupancy, field.occupancy._version, full, 0)
     if full:  # little to skip: the one pass is cheaper
         return None
-    ray = ray[kept]  # [s]: the rays of the stretches kept, sorted
-    first = cand[kept] - ray * n_seg  # each stretch's index along its ray
+    ray = ray.index_select(0, kept)  # [s]: the rays of the stretches kept, sorted
+    first = cand.index_select(0, kept) - ray * n_seg  # each stretch's index along its ray
     k = k0[first][:, None] + torch.arange(seg, device=dev, dtype=dt)[None, :]  # [s, seg], exact integers
     t = t_in[ray][:, None] + step * (k + off[ray][:, None])
     inside = ((t < t_out[ray][:, None]) & (k < n_samp)).view(-1)
@@ -255,8 +263,8 @@ def visible_samples(field, ray_of: torch.Tensor, pts: torch.Tensor, n: int, step
     < ``stop`` on its ray, so the dropped samples add less than ``stop`` to the pixel's luminance and
     opacity, and the gradient they give a sample in front (through its transmittance) is that small too."""
     trans, reads = sample_transmittance(field, ray_of, pts, n, step)
-    keep = trans >= stop
-    return (None if bool(keep.all()) else keep.nonzero().squeeze(-1)), reads
+    keep = (trans >= stop).nonzero().squeeze(-1)  # (one read: the count says whether all are kept)
+    return (None if keep.numel() == trans.numel() else keep), reads
 
 
 def _exclusive_segment_cumsum(v: torch.Tensor, seg: torch.Tensor, n_seg: int) -> torch.Tensor:

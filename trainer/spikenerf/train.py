@@ -106,10 +106,11 @@ class Batch:
         """Image and pixel indices ``[n]`` and sample offsets ``[n]``, drawn on the CPU from ``gen``
         (so every device draws the same) and then moved to the run's device."""
         N, P = self.values.shape
-        img = torch.randint(0, N, (n,), generator=gen).to(self.device)
-        pix = torch.randint(0, P, (n,), generator=gen).to(self.device)
-        jitter = torch.rand(n, generator=gen).to(self.device)
-        return img, pix, jitter
+        draws = (torch.randint(0, N, (n,), generator=gen), torch.randint(0, P, (n,), generator=gen),
+                 torch.rand(n, generator=gen))
+        if self.device.type == "cuda":  # from page-locked memory, without waiting for the device
+            return tuple(t.pin_memory().to(self.device, non_blocking=True) for t in draws)
+        return tuple(t.to(self.device) for t in draws)
 
 
 def method_loss(method, x, img, pix, batch: Batch, intensity: float):
@@ -321,6 +322,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
     last_save, save_s = time.perf_counter(), 0.0  # save_s: how long the last save took
     bar = tqdm(range(start, cfg.iters), initial=start, total=cfg.iters, desc=f"train {cfg.method}",
                disable=not progress, unit="it")
+    guard = LossGuard(batch.device, ck_path)
     t0 = time.perf_counter()
     for it in bar:
         if it >= stop_at:
@@ -340,13 +342,15 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         if cfg.tv_weight > 0:
             tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)
             loss = loss + cfg.tv_weight * tv
-        _check_loss(loss, it, ck_path, bar)
+        guard.note(loss, it, bar)
         for g, base in zip(opt.param_groups, (cfg.lr_grid, cfg.lr_mlp)):
             g["lr"] = base * learning_rate_factor(it, cfg.iters, cfg.lr_decay)
         opt.zero_grad(set_to_none=False)  # the grids' gradients stay allocated: model._CornerRead adds into them
         loss.backward()
         opt.step()
         if it % 10 == 0:
+            guard.check(bar)
+        if it % 10 == 0 and not bar.disable:  # (reading these values waits for a GPU: only when shown)
             mse = float((pred.detach().clamp(0, 1) - obs.clamp(0, 1)).square().mean())
             bar.set_postfix(loss=f"{loss.item():.4g}", psnr=f"{-10 * math.log10(max(mse, 1e-10)):.2f}",
                             grid=field.grid_size, occ=f"{float(field.occupancy.float().mean()):.3f}")
@@ -355,6 +359,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         # by time: every checkpoint_every_s, but at least 20 save-durations apart (saves <= ~5 % of the time)
         if done in (cfg.iters, stop_at) or done % cfg.checkpoint_every == 0 or \
                 now - last_save > max(cfg.checkpoint_every_s, 20 * save_s):
+            guard.check(bar)
             _check_finite(field, it, ck_path, bar)
             save_checkpoint(ck_path, field, opt, cfg, done, train_s + now - t0, extra)
             last_save = time.perf_counter()
@@ -362,13 +367,45 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
     bar.close()
 
 
-def _check_loss(loss, it, ck_path, bar) -> None:
-    """A NaN or infinite loss stops the run before the step (the last good checkpoint is kept)."""
-    if torch.isfinite(loss):
-        return
-    bar.close()
-    raise TrainError(f"loss became {'NaN' if torch.isnan(loss) else 'infinite'} at iteration {it}; stopped. The last "
-                     f"good checkpoint {ck_path} is kept" + ("" if ck_path.is_file() else " (none was written yet)"))
+class LossGuard:
+    """A NaN or infinite loss stops the run; the last good checkpoint is kept.
+
+    On the CPU each step's loss is checked before its step. On a GPU reading the loss on the host
+    would wait for the device every step (bench/bench_trainer_profile.py --count), so the check stays
+    on the device: the first non-finite loss's iteration and value are kept there and read every 10
+    iterations and before every checkpoint, so the run stops within 10 iterations of the bad one,
+    names it, and never saves a field trained past it (``_check_finite`` also guards every save)."""
+
+    def __init__(self, device: torch.device, ck_path: Path):
+        self.deferred = device.type != "cpu"
+        self.ck_path = ck_path
+        self.first_it = self.first_loss = None
+
+    def note(self, loss: torch.Tensor, it: int, bar) -> None:
+        loss = loss.detach()
+        if not self.deferred:
+            if not torch.isfinite(loss):
+                self._stop(float(loss), it, bar)
+            return
+        if self.first_it is None:
+            self.first_it = torch.full((), -1, dtype=torch.long, device=loss.device)
+            self.first_loss = torch.zeros((), dtype=loss.dtype, device=loss.device)
+        new = ~torch.isfinite(loss) & (self.first_it < 0)
+        self.first_it = torch.where(new, it, self.first_it)
+        self.first_loss = torch.where(new, loss, self.first_loss)
+
+    def check(self, bar) -> None:
+        """(Deferred mode) stop if any loss noted so far was not finite."""
+        if self.first_it is not None:
+            it = int(self.first_it)
+            if it >= 0:
+                self._stop(float(self.first_loss), it, bar)
+
+    def _stop(self, value: float, it: int, bar) -> None:
+        bar.close()
+        raise TrainError(f"loss became {'NaN' if math.isnan(value) else 'infinite'} at iteration {it}; stopped. The "
+                         f"last good checkpoint {self.ck_path} is kept" +
+                         ("" if self.ck_path.is_file() else " (none was written yet)"))
 
 
 def _check_finite(field, it, ck_path, bar) -> None:
