@@ -11,7 +11,8 @@ trained on, its 100 ``val`` views, never seen in training, are the held-out view
 scene: ``spikegen render`` with the moving camera, its test split held out), then for every method
 and seed ``spikenerf train`` and ``spikenerf eval``. Each finished run becomes one line of
 ``bench/results/protocol.jsonl``: what it was (data, sensor, intensity, method, what the method knows
-of the sensor, resolution, seed, iterations, frames, device), what it cost (train seconds, wall
+of the sensor, resolution, seed, iterations, frames, rays a step (rows without it: the default
+2048), device), what it cost (train seconds, wall
 seconds, the load average) and every metric (means and per view). A run already in the file is
 skipped, so a long table is completed over several sessions; work folders live in ``--out``, and a
 run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
@@ -34,7 +35,7 @@ import sys
 import time
 from pathlib import Path
 
-from spikenerf.config import default_iters
+from spikenerf.config import TrainConfig, default_iters
 
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_400"
@@ -53,7 +54,10 @@ KNOWLEDGE = {"spikelik": "true maps", "spikenerf-paper": "true maps", "spikenerf
 # (sensor_model), and rows made with another preset are not the same runs. Rows from before this key
 # were made with the preset of commits dfecb33 to 76ab7ef: shot noise of N_e = 1.383e4, no jitter.
 LEGACY_CALIBRATED = {"electrons": 13829.406571440471, "threshold_jitter": 0.0}
-KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed", "iterations", "frames", "field")
+KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed", "iterations", "frames", "field",
+       "batch_rays")
+# rays a training step (spikenerf train --batch-rays): rows without the key were made at the trainer's default
+DEFAULT_RAYS = TrainConfig.__dataclass_fields__["batch_rays"].default
 CAL_INTENSITY, CAL_FRAMES = 64.0, 2000  # the simulated calibration recordings: a dark and two flats
 CAL_FLATS_X = (0.25, 0.75)  # flat radiances; their "lux" is the nominal rate X * I / 256 (spikes per frame)
 
@@ -128,7 +132,8 @@ def sensor_name(row: dict) -> str:
 
 
 def row_key(row: dict) -> tuple:
-    return tuple(row.get(k, OLD_FIELD) if k == "field" else sensor_name(row) if k == "sensor" else row[k] for k in KEY)
+    return tuple(row.get(k, OLD_FIELD) if k == "field" else sensor_name(row) if k == "sensor" else
+                 row.get(k, DEFAULT_RAYS) if k == "batch_rays" else row[k] for k in KEY)
 
 
 def done_keys(results: Path = RESULTS) -> set:
@@ -139,11 +144,17 @@ def done_keys(results: Path = RESULTS) -> set:
 
 def run_one(folder: Path, cell: dict, args) -> dict:
     """Train and evaluate one run; the results line."""
-    run = args.out / f"runs_{args.resolution}" / "_".join(str(cell[k]) for k in KEY).replace(" ", "-").replace(",", "")
+    # (the folder's name: the key's values; the rays a step only where not the default, so that the
+    # folders of runs from before that key are found again and resume)
+    name = "_".join(str(cell[k]) for k in KEY if k != "batch_rays").replace(" ", "-").replace(",", "")
+    rays = cell["batch_rays"]
+    run = args.out / f"runs_{args.resolution}" / (name + ("" if rays == DEFAULT_RAYS else f"_rays{rays}"))
     cmd = ["spikenerf", "train", str(folder), "--method", cell["method"], "--out", str(run), "--device",
            args.device, "--seed", str(cell["seed"]), "--quiet", "--iters", str(cell["iterations"])]
     if cell["frames"]:
         cmd += ["--frames", str(cell["frames"])]
+    if rays != DEFAULT_RAYS:
+        cmd += ["--batch-rays", str(rays)]
     if cell["knowledge"] == "calibrated maps":
         cmd += ["--sensor-maps", str(calibration(cell["sensor"], args))]
     resumed = _checkpoint_iteration(run)
@@ -203,7 +214,7 @@ def cells(args):
         yield data, sensor, i, {"data": data, "sensor": sensor, "intensity": i, "method": method,
                                 "knowledge": knows, "resolution": args.resolution, "seed": seed,
                                 "iterations": args.iters or default_iters(args.resolution, args.resolution),
-                                "frames": args.frames, "field": FIELD}
+                                "frames": args.frames, "field": FIELD, "batch_rays": args.batch_rays}
 
 
 def main() -> None:
@@ -218,6 +229,8 @@ def main() -> None:
     ap.add_argument("--iters", type=int, default=0, help="0 = the trainer's default for the resolution "
                     "(spikenerf.config.default_iters); the number is stated in every row")
     ap.add_argument("--frames", type=int, default=0, help="train from the first w frames (0 = all)")
+    ap.add_argument("--batch-rays", type=int, default=DEFAULT_RAYS, help="rays a training step (spikenerf train "
+                    "--batch-rays); stated in every row")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
     ap.add_argument("--device", default="auto")

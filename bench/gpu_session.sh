@@ -15,6 +15,9 @@
 #   converge81 spikelik with 81000 iterations (converged at 27000?); resumes across calls on a warm machine
 #   stop       early ray termination on the GPU: spikelik, rsir i32 400 x 400, 3000 iterations, with the
 #              default --stop-transmittance and with 0; prints each run's training seconds
+#   rays       spikelik with 8192 rays a step for 6750 iterations (the rays of 27000 at the default 2048;
+#              chosen on the procedural lego, docs/trainer.md "Rays a step")
+#   rays3      the same with 20250 iterations (converged at 6750 if within 0.3 dB)
 # Rows go to OUT/protocol_gpu.jsonl (bench/bench_protocol.py --results), which starts as a copy of
 # bench/results/protocol_gpu.jsonl, so runs recorded there are skipped; copy it back afterwards.
 # Work folders stay in bench_out/protocol, so a run cut by the budget resumes in a later call.
@@ -25,7 +28,7 @@ BUDGET=${3:-540}
 shift $(( $# < 3 ? $# : 3 ))
 STAGES=${*:-tests spikelik profile baselines converge}
 for st in $STAGES; do
-    case $st in tests|spikelik|profile|baselines|converge|converge81|stop) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3) ;; *) echo "unknown stage $st"; exit 2 ;; esac
 done
 T0=$(date +%s)
 mkdir -p "$OUT"
@@ -82,6 +85,8 @@ for st in $STAGES; do
                        --seeds 0 ;;
         converge) stage protocol_27000 $P --methods spikelik --seeds 0 --iters 27000 ;;
         converge81) stage protocol_81000 $P --methods spikelik --seeds 0 --iters 81000 ;;
+        rays) stage protocol_rays8192_6750 $P --methods spikelik --seeds 0 --iters 6750 --batch-rays 8192 ;;
+        rays3) stage protocol_rays8192_20250 $P --methods spikelik --seeds 0 --iters 20250 --batch-rays 8192 ;;
         stop) if [ -d "$DATA" ]; then stage stop_ab bash -c stop_ab
               else echo "stop: no $DATA here (run the spikelik stage first)"; fi ;;
     esac

@@ -17,8 +17,8 @@ GPU_RESULTS = HERE / "results" / "protocol_gpu.jsonl"  # runs on a GPU (bench_pr
 OUT = HERE / "PROTOCOL.md"
 INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
-from bench_protocol import (FIELD, KEY, KNOWLEDGE, METHODS, OLD_FIELD, row_key,  # noqa: E402 (the runner's names)
-                            sensor_model, sensor_name)
+from bench_protocol import (DEFAULT_RAYS, FIELD, KEY, KNOWLEDGE, METHODS, OLD_FIELD,  # noqa: E402 (the runner's names)
+                            row_key, sensor_model, sensor_name)
 from spikenerf.config import default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
 
 SPIKE_METHODS = [m for m in METHODS if m != "oracle"]  # the plan's runs (the oracle is a reference, not planned)
@@ -93,9 +93,19 @@ def load(path: Path = RESULTS) -> list:
     return [{**r, "sensor": sensor_name(r)} for r in rows]
 
 
+def _rays(r: dict) -> int:
+    return r.get("batch_rays", DEFAULT_RAYS)
+
+
 def _run_name(r: dict) -> str:
+    rays = "" if _rays(r) == DEFAULT_RAYS else f", {_rays(r)} rays a step"
     return (f"{r['data']}, {r['sensor']}, {r['resolution']} x {r['resolution']}, i{r['intensity']}, "
-            f"{r['method']} ({r['knowledge']}), seed {r['seed']}")
+            f"{r['method']} ({r['knowledge']}), seed {r['seed']}{rays}")
+
+
+def _iters(r: dict) -> str:
+    """The iteration count as the tables label it (with the rays a step where not the default)."""
+    return str(r["iterations"]) + ("" if _rays(r) == DEFAULT_RAYS else f" ({_rays(r)} rays)")
 
 
 def _but_iterations(r: dict) -> tuple:
@@ -113,14 +123,14 @@ def gpu_section(gpu: list, cpu: list) -> list[str]:
     diffs = []
     for r in sorted(gpu, key=lambda r: (-r["resolution"], r["data"], r["sensor"], r["intensity"],
                                         METHODS.index(r["method"]) if r["method"] in METHODS else 99,
-                                        r["knowledge"], r["seed"], r["iterations"])):
+                                        r["knowledge"], r["seed"], _rays(r), r["iterations"])):
         m, c = r["metrics"], by_key.get(row_key(r))
         same, diff = "–", "–"
         if c is not None:
             same = f"{c['metrics']['psnr']:.2f} / {c['metrics']['psnr_object']:.2f}, {c['train_seconds']:.0f} s"
             diffs.append(m["psnr_object"] - c["metrics"]["psnr_object"])
             diff = f"{diffs[-1]:+.3f}"
-        out.append(f"| {_run_name(r)} | {r.get('gpu', r['device'])} | {r['iterations']} | {r['train_seconds']:.0f} | "
+        out.append(f"| {_run_name(r)} | {r.get('gpu', r['device'])} | {_iters(r)} | {r['train_seconds']:.0f} | "
                    f"{r['wall_seconds']:.0f} | {m['psnr']:.2f} / {m['psnr_object']:.2f} | {same} | {diff} |")
     out.append("")
     if diffs:
@@ -149,15 +159,15 @@ def table(rows: list, key: str, label: str) -> list[str]:
     """Markdown rows: one per (method, knowledge, iterations, frames), one column per intensity."""
     groups = defaultdict(list)
     for r in rows:
-        groups[(r["method"], r["knowledge"], r["iterations"], r["frames"])].append(r)
-    order = sorted(groups, key=lambda g: (METHODS.index(g[0]) if g[0] in METHODS else 99, g[1], g[2], g[3]))
+        groups[(r["method"], r["knowledge"], r["iterations"], r["frames"], _rays(r))].append(r)
+    order = sorted(groups, key=lambda g: (METHODS.index(g[0]) if g[0] in METHODS else 99, g[1], g[2], g[3], g[4]))
     out = [f"| {label} | knows | iters | frames | " + " | ".join(f"i{i}" for i in INTENSITIES) + " |",
            "|---|---|---|---|" + "---|" * len(INTENSITIES)]
     for g in order:
         digits = 3 if key.startswith("ssim") else 2
         cells = [_stat((r["metrics"].get(key) for r in groups[g] if r["intensity"] == i), digits)
                  for i in INTENSITIES]
-        out.append(f"| {g[0]} | {g[1]} | {g[2]} | {g[3] or 'all'} | " + " | ".join(cells) + " |")
+        out.append(f"| {g[0]} | {g[1]} | {_iters(groups[g][0])} | {g[3] or 'all'} | " + " | ".join(cells) + " |")
     return out
 
 
@@ -187,7 +197,8 @@ def _loads(rows) -> str:
 def missing(rows: list) -> list[str]:
     """The planned runs (PLAN, at the trainer's default iteration count for the resolution) not in the results."""
     have = {(r["resolution"], r["data"], r["sensor"], r["intensity"], r["method"], r["seed"]) for r in rows
-            if r["iterations"] == default_iters(r["resolution"], r["resolution"]) and not r["frames"]}
+            if r["iterations"] == default_iters(r["resolution"], r["resolution"]) and not r["frames"]
+            and _rays(r) == DEFAULT_RAYS}
     out = []
     for res, datas, sensors, intensities, methods in PLAN:
         for data, preset in itertools.product(datas, sensors):
@@ -207,7 +218,8 @@ def scenes_table(rows: list) -> list[str]:
     iteration count from all frames only, one table per resolution, sensor and intensity."""
     cells = defaultdict(list)
     for r in rows:
-        if r["data"] in SCENES and not r["frames"] and r["iterations"] == default_iters(r["resolution"], r["resolution"]):
+        if r["data"] in SCENES and not r["frames"] and _rays(r) == DEFAULT_RAYS and \
+                r["iterations"] == default_iters(r["resolution"], r["resolution"]):
             cells[(r["resolution"], r["sensor"], r["intensity"])].append(r)
     out = []
     for res, sensor, i in sorted(cells, key=lambda c: (-c[0], c[1], c[2])):
@@ -243,9 +255,9 @@ def iterations_note(rows: list) -> str:
         counts = defaultdict(int)
         for r in rows:
             if r["resolution"] == res:
-                counts[r["iterations"]] += 1
-        other = sorted(c for c in counts if c != want)
-        text = f"At {res} x {res}: {counts.get(want, 0)} runs at the default {want}"
+                counts[_iters(r)] += 1
+        other = sorted((c for c in counts if c != str(want)), key=lambda c: (int(c.split()[0]), c))
+        text = f"At {res} x {res}: {counts.get(str(want), 0)} runs at the default {want}"
         if other:
             text += (", and " + ", ".join(f"{counts[c]} at {c}" for c in other)
                      + " (shown in their own rows, never averaged or compared with the default's)")
@@ -296,11 +308,11 @@ def targets(rows: list) -> list[str]:
     over the port is the largest any method of this field could show (it knows the images)."""
     cells = defaultdict(list)  # runs with different iteration counts are not compared
     for r in rows:
-        cells[(r["resolution"], r["data"], r["sensor"], r["iterations"])].append(r)
+        cells[(r["resolution"], r["data"], r["sensor"], _iters(r))].append(r)
     out = ["| data | intensity | default − paper's port (≥ +3) | default − best baseline (> 0) | "
            "calibrated − true maps (≥ −0.5) | oracle − paper's port (the field's ceiling) |",
            "|---|---|---|---|---|---|"]
-    for (res, data, sensor, iters) in sorted(cells, key=lambda c: (-c[0], c[1], c[2], c[3])):
+    for (res, data, sensor, iters) in sorted(cells, key=lambda c: (-c[0], c[1], c[2], int(c[3].split()[0]), c[3])):
         rs = cells[(res, data, sensor, iters)]
         for i in INTENSITIES:
             d, nd = _mean(rs, "spikelik", "true maps", i)

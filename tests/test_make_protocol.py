@@ -131,3 +131,24 @@ def test_gpu_rows_sit_beside_the_same_run_on_the_cpu():
     assert any("largest GPU − CPU difference in object PSNR is 0.040 dB" in line for line in lines)
     conv = next(line for line in lines if "0.3 dB criterion" in line)
     assert "+0.96 dB" in conv and "not converged at 9000" in conv
+
+
+def test_rows_with_other_rays_a_step_are_other_runs():
+    """A row records its rays a step (rows without it: the trainer's default); a run with another count
+    is its own key, its own table line and target line, and fills no planned slot."""
+    import bench_protocol
+    assert bench_protocol.DEFAULT_RAYS == 2048
+    base = {**_row("spikelik", "true maps", 25.0, iterations=9000), "field": bench_protocol.FIELD}
+    wide = {**base, "batch_rays": 8192, "metrics": {"psnr_object": 30.0}}
+    assert bench_protocol.row_key(base) == bench_protocol.row_key({**base, "batch_rays": 2048})
+    assert bench_protocol.row_key(wide) != bench_protocol.row_key(base)
+    lines = make_protocol.table([base, wide], "psnr_object", "method")
+    assert any("| 9000 |" in x and "25.00" in x for x in lines)
+    assert any("| 9000 (8192 rays) |" in x and "30.00" in x for x in lines)
+    targets = make_protocol.targets([base, wide])
+    assert sum("| i64 |" in x for x in targets) == 2 and any("9000 (8192 rays) it" in x for x in targets)
+
+    def left(rows):
+        line = next(x for x in make_protocol.missing(rows) if "lego, rsir, 400 x 400" in x)
+        return int(line.split(": ")[1].split(" of ")[0])
+    assert left([wide]) == left([]) == left([base]) + 1
