@@ -103,9 +103,15 @@ def _run_name(r: dict) -> str:
             f"{r['method']} ({r['knowledge']}), seed {r['seed']}{rays}")
 
 
-def _iters(r: dict) -> str:
-    """The iteration count as the tables label it (with the rays a step where not the default)."""
-    return str(r["iterations"]) + ("" if _rays(r) == DEFAULT_RAYS else f" ({_rays(r)} rays)")
+def _budget(r: dict) -> tuple[int, int]:
+    """(iterations, rays a step): runs with different budgets are never averaged or compared."""
+    return r["iterations"], _rays(r)
+
+
+def _iters(budget: tuple[int, int]) -> str:
+    """A budget as the tables label it: the iteration count, with the rays a step where not the default."""
+    iters, rays = budget
+    return str(iters) + ("" if rays == DEFAULT_RAYS else f" ({rays} rays)")
 
 
 def _but_iterations(r: dict) -> tuple:
@@ -130,7 +136,7 @@ def gpu_section(gpu: list, cpu: list) -> list[str]:
             same = f"{c['metrics']['psnr']:.2f} / {c['metrics']['psnr_object']:.2f}, {c['train_seconds']:.0f} s"
             diffs.append(m["psnr_object"] - c["metrics"]["psnr_object"])
             diff = f"{diffs[-1]:+.3f}"
-        out.append(f"| {_run_name(r)} | {r.get('gpu', r['device'])} | {_iters(r)} | {r['train_seconds']:.0f} | "
+        out.append(f"| {_run_name(r)} | {r.get('gpu', r['device'])} | {_iters(_budget(r))} | {r['train_seconds']:.0f} | "
                    f"{r['wall_seconds']:.0f} | {m['psnr']:.2f} / {m['psnr_object']:.2f} | {same} | {diff} |")
     out.append("")
     if diffs:
@@ -167,7 +173,7 @@ def table(rows: list, key: str, label: str) -> list[str]:
         digits = 3 if key.startswith("ssim") else 2
         cells = [_stat((r["metrics"].get(key) for r in groups[g] if r["intensity"] == i), digits)
                  for i in INTENSITIES]
-        out.append(f"| {g[0]} | {g[1]} | {_iters(groups[g][0])} | {g[3] or 'all'} | " + " | ".join(cells) + " |")
+        out.append(f"| {g[0]} | {g[1]} | {_iters((g[2], g[4]))} | {g[3] or 'all'} | " + " | ".join(cells) + " |")
     return out
 
 
@@ -255,11 +261,12 @@ def iterations_note(rows: list) -> str:
         counts = defaultdict(int)
         for r in rows:
             if r["resolution"] == res:
-                counts[_iters(r)] += 1
-        other = sorted((c for c in counts if c != str(want)), key=lambda c: (int(c.split()[0]), c))
-        text = f"At {res} x {res}: {counts.get(str(want), 0)} runs at the default {want}"
+                counts[_budget(r)] += 1
+        default = (want, DEFAULT_RAYS)
+        other = sorted(c for c in counts if c != default)
+        text = f"At {res} x {res}: {counts.get(default, 0)} runs at the default {want}"
         if other:
-            text += (", and " + ", ".join(f"{counts[c]} at {c}" for c in other)
+            text += (", and " + ", ".join(f"{counts[c]} at {_iters(c)}" for c in other)
                      + " (shown in their own rows, never averaged or compared with the default's)")
         out.append(text + ".")
     return " ".join(out)
@@ -306,14 +313,14 @@ def targets(rows: list) -> list[str]:
     (spikelik, true maps) at least 3 dB above the port of the paper's method and above every
     baseline; with calibrated maps at most 0.5 dB below itself with true maps. The oracle's margin
     over the port is the largest any method of this field could show (it knows the images)."""
-    cells = defaultdict(list)  # runs with different iteration counts are not compared
+    cells = defaultdict(list)  # runs with different budgets (iterations, rays a step) are not compared
     for r in rows:
-        cells[(r["resolution"], r["data"], r["sensor"], _iters(r))].append(r)
+        cells[(r["resolution"], r["data"], r["sensor"], _budget(r))].append(r)
     out = ["| data | intensity | default − paper's port (≥ +3) | default − best baseline (> 0) | "
            "calibrated − true maps (≥ −0.5) | oracle − paper's port (the field's ceiling) |",
            "|---|---|---|---|---|---|"]
-    for (res, data, sensor, iters) in sorted(cells, key=lambda c: (-c[0], c[1], c[2], int(c[3].split()[0]), c[3])):
-        rs = cells[(res, data, sensor, iters)]
+    for (res, data, sensor, budget) in sorted(cells, key=lambda c: (-c[0], c[1], c[2], c[3])):
+        rs = cells[(res, data, sensor, budget)]
         for i in INTENSITIES:
             d, nd = _mean(rs, "spikelik", "true maps", i)
             if d is None:
@@ -333,7 +340,7 @@ def targets(rows: list) -> list[str]:
                 best = "–"
             cal = _verdict(None if c is None else c - d, c is not None and c - d >= -0.5, min(nd, nc))
             ceiling = "–" if o is None or p is None else f"{o - p:+.2f}"
-            out.append(f"| {data}, {sensor}, {res} x {res}, {iters} it | i{i} | {paper} | {best} | {cal} | {ceiling} |")
+            out.append(f"| {data}, {sensor}, {res} x {res}, {_iters(budget)} it | i{i} | {paper} | {best} | {cal} | {ceiling} |")
     return out if len(out) > 2 else []
 
 
