@@ -211,9 +211,11 @@ class _Band:
         """heldout.window_counts of ``"meas"`` or ``"held"`` (the simulation's held-out frames)."""
         return self._get(("windows", which, w), lambda: heldout.window_counts(getattr(self, which), w))
 
-    def count_variance(self, w: int, static_reference: bool) -> np.ndarray:
-        """heldout.count_variance of the whole simulation (no modulation)."""
-        return self._get(("cvar", w, static_reference), lambda: heldout.count_variance(self.sim, w, static_reference))
+    def count_variance(self, w: int, static_reference: bool, floor: float = heldout.VAR_FLOOR) -> np.ndarray:
+        """heldout.count_variance of the whole simulation (no modulation), at least ``floor``."""
+        raw = self._get(("cvar", w, static_reference),
+                        lambda: heldout.count_variance(self.sim, w, static_reference, floor=0.0))
+        return np.maximum(raw, floor)
 
     def times(self, which: str) -> tuple:
         """stats.spike_times of ``"meas"`` or ``"held"``."""
@@ -236,13 +238,23 @@ class _HeldOutScore:
         self.count_ll = {w: np.zeros(P) for w in self.lengths}
         self.rate, self.cvar = np.zeros(P), {w: np.zeros(P) for w in self.lengths}
         self.pop = {w: 0.0 for w in self.lengths}
+        if self.pooled:
+            self.intervals = heldout.IntervalPool(P, T)
+            # the pools: pixels of like drive (charge per frame in thresholds, R (I X / 256 + d),
+            # before the readout makes whole-frame intervals of it)
+            R, d = sensor.maps(*ctx.shape)
+            self.drive = (R * (ctx.intensity / 256.0 * ctx.X[0] + d)).reshape(-1)
 
     def add(self, sl: slice, band: _Band) -> None:
         """The pixels ``sl``: the band's measured held-out frames and simulation."""
         meas, sim = band.meas, band.sim
         T, Th = sim.shape[0], meas.shape[0]
         band_mask = self.ctx.static[sl]
-        if self.modulation is None:
+        if self.pooled:  # pooled over the judged pixels in finish()
+            self.intervals.add(sl, stats.intervals(sim), band.moments(),
+                               stats.intervals(meas, times=band.times("meas")))
+            band_mod = None
+        elif self.modulation is None:
             self.interval_ll[sl] = heldout._interval_loglik(meas, band.moments(),
                                                             stats.intervals(meas, times=band.times("meas")))
             band_mod = None
@@ -255,19 +267,22 @@ class _HeldOutScore:
             if self.pooled:
                 s = band.windows("held", w)
                 self.pop[w] = self.pop[w] + s[:, band_mask].sum(axis=1)
-                self.cvar[w][sl] = band.count_variance(w, True) * (1.0 + w / T)
+                self.cvar[w][sl] = band.count_variance(w, True, floor=0.0)
             else:
                 self.count_ll[w][sl] = heldout._count_loglik(meas, sim, band_mask, w, self.static_ref, band_mod)
 
     def finish(self) -> heldout.HeldOutScore:
         ctx, lengths = self.ctx, self.lengths
         W = ctx.shape[1]
-        if self.pooled:  # heldout._count_loglik's static branch, with the factor of the whole population
+        if self.pooled:  # heldout.score's static branch, with the factor of the whole population
+            self.interval_ll = self.intervals.finish(ctx.static, -self.drive)
+            cvar = {w: heldout.pooled_count_variance(self.cvar[w], self.rate, ctx.static, w, ctx.frames)
+                    for w in lengths}
             for r0, r1 in bands(ctx.shape[0], ctx.rows):
                 sl = slice(r0 * W, r1 * W)
                 for w in lengths:
                     c = heldout.window_counts(ctx.spikes.rows(r0, r1, ctx.Tf), w)
-                    self.count_ll[w][sl] = heldout.count_loglik_given(c, self.pop[w], self.rate[sl], w, self.cvar[w][sl])
+                    self.count_ll[w][sl] = heldout.count_loglik_given(c, self.pop[w], self.rate[sl], w, cvar[w][sl])
         per_pixel = self.interval_ll
         for w in lengths:
             per_pixel = per_pixel + self.count_ll[w] / len(lengths)

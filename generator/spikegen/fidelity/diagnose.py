@@ -34,8 +34,8 @@ Every effect gets ``score`` = its estimated size over the weakest size the tools
 pass. Gain and dark-rate spread are separated jointly (effects.joint_spread: multiplicative
 against additive over a range of light). Then the held-out choice (:mod:`.heldout`): the
 effects that passed their gates are removed one by one while removing them does not lower a
-proper score of the held-out frames (Gaussian log-likelihood of intervals and window counts
-under each model's simulation) by more than a penalty; only the kept ones are reported
+proper score of the held-out frames (log-likelihood of intervals and window counts under each
+model's simulation, heldout.MEASURE) by more than a penalty; only the kept ones are reported
 (detected). The extended sensor is the baseline plus the kept effects with the fitted maps;
 "heldout" is the score of the baseline and of the extended sensor; "unexplained" lists the
 held-out statistics the extended sensor does not reproduce (:mod:`.unexplained`); "baseline",

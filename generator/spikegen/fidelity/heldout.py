@@ -1,28 +1,66 @@
 """Held-out evidence of ``spikegen diagnose``: one proper score of the held-out frames, the
 static pixels of a recording without a reference, and the choice among nested models.
 
-The score is a Gaussian log-likelihood (nats per pixel) of two things measured on the
-held-out frames, under the predictive distributions a sensor's simulation gives them:
+The score is a log-likelihood (nats per pixel) of two things measured on the held-out frames,
+under the predictive distributions a sensor's simulation gives them:
 
-1. each pixel's inter-spike intervals: mean and variance those of the simulated intervals of
-   the pixel (whole run), the variance with the mean's sampling error and at least
-   :data:`VAR_FLOOR` (the simulated intervals are whole frames like the measured ones, so their
-   variance already holds the rounding; adding it again would favour a model with too little
-   temporal noise);
+1. each pixel's inter-spike intervals, whole frames:
+
+   * with a static reference (``K = 1``) and no modulation (the common case: ``"self"`` on a
+     still scene, or a still radiance), the log probability of each interval's value under the
+     simulated intervals of the pixel's pool (:class:`IntervalPool`): the :data:`POOL_PIXELS`
+     judged pixels whose drive under the model (its charge per frame in thresholds,
+     ``R (I X / 256 + d)`` with the model's maps, before the readout makes whole-frame intervals
+     of it) is nearest its own (:func:`pool_groups`). The pool's probability of a value is its
+     simulated intervals of that value plus one pseudo-interval spread as a Gaussian of the
+     pixel's own simulated mean and the pool's variance about its pixels' means plus one frame^2
+     (with it the simulated values no pixel kept: those more than 2 frames below or 3 above its
+     mean), over the pool's intervals plus one;
+   * otherwise a Gaussian density, mean and variance those of the simulated intervals of the
+     pixel (whole run), the variance with the mean's sampling error and at least
+     :data:`VAR_FLOOR`;
 2. each pixel's spike counts in windows of ``w`` frames, averaged over the window lengths
-   :data:`WINDOWS` that fit in the held-out part:
+   :data:`WINDOWS` that fit in the held-out part, Gaussian densities:
 
    * mean ``m[j, p]``: for a static reference ``K = 1``, the simulated rate of pixel ``p``
      over the whole run times ``w`` times the window's population factor ``F[j]`` (simulated
      spikes of held-out window ``j`` over their mean: flicker and other modulation common to
      all pixels); for a reference that changes (``K > 1``) the simulated count itself;
    * variance: that of the simulated counts of the pixel in windows of ``w`` frames over the
-     whole run (:func:`count_variance`, at least :data:`VAR_FLOOR`), with ``K = 1`` times
-     ``1 + w / T`` for the noise of the simulated rate, with ``K > 1`` twice it (the mean is one draw).
+     whole run (:func:`count_variance`, at least :data:`VAR_FLOOR`), with ``K = 1`` (no
+     modulation) the mean over the :data:`POOL_PIXELS` judged pixels of nearest simulated rate
+     (:func:`pooled_count_variance`) times ``1 + w / T`` for the noise of the simulated rate, with
+     ``K > 1`` twice it (the mean is one draw).
+
+Why intervals are scored by the probability of their whole-frame value, pooled (until 2026-11-26
+they were scored like the other cases, a Gaussian of each pixel's own simulated mean and
+variance, at least a twelfth of a frame^2): the whole-frame intervals of an integrate-and-fire
+pixel take the two whole numbers around its mean interval, in a proportion set by the mean's
+fractional part. The temporal noise of a real sensor (N_e ~ 2e4) adds a few thousandths of a
+frame^2 to their variance, less than one pixel's sample variance varies from one simulation to
+the next, so a model with noise paid for the noise of its plug-in variances more than it gained;
+and the floor gave the ideal sensor and a noisy model the same variance exactly where they
+differ most: a pixel whose mean interval is within a few hundredths of a whole frame fires at that
+interval every time on the ideal sensor, and only temporal noise gives it the occasional interval
+a frame longer or shorter. On seeded recordings at the car's rates with shot noise of N_e = 1.38e4
+the old score put the true model 0.014 nats per pixel below the ideal sensor (z -17); and a Gaussian
+density read at whole numbers is not a distribution on them. The log probability of a discrete
+outcome is a strictly proper score, a pool of 64 pixels gives each
+value's probability from some 64 times the intervals, and every effect in the catalogue acts on a
+pixel's intervals through its drive (gain, dark current, hot pixels, columns) or through what the
+readout and the noise make of it (shot noise, the threshold jitter, a reset to zero), so the pool
+is the model's distribution at that drive. Pooled by the drive rather than by the simulated mean
+interval: a model whose intervals never vary (a reset to zero without noise) gives every pixel one
+whole value, and where the fitted rate is a little off that value is a frame wrong; pixels of like
+drive near such a step hold both values, pixels of like simulated mean only one (each such interval
+then cost some 9 nats, and a true reset to zero beside hot pixels was dropped). The same seeded
+recordings now score the true model above the ideal one, and a recording of the ideal sensor the
+ideal sensor above the noisy ones (``tests/test_diagnose_heldout_pool.py``).
 
 Intervals see temporal noise and the readout, counts see rates and modulation. The Gaussian
 log density is a proper scoring rule for the mean and variance it is given, so a model scores
-best in expectation when its predictive mean and variance are the true ones.
+best in expectation when its predictive mean and variance are the true ones; the log probability
+of the intervals' values is proper for their whole distribution.
 
 A model whose light is modulated in time (the sensor's flicker, :class:`Modulation`) is scored
 on its own clock: pixel ``p`` integrates ``f_p(t) = 1 + s_p (phi(t) - 1)`` (``phi`` the flicker
@@ -53,10 +91,12 @@ from . import stats
 WINDOWS = (4, 16, 64)  # window lengths of the scored counts, frames
 MIN_Z = 2.0  # an effect must improve the score by this many standard errors
 VAR_FLOOR = 1.0 / 12.0  # least predictive variance of an interval (frames^2) or a count (a frame's rounding)
+POOL_PIXELS = 64  # a static reference: intervals (counts) are predicted from this many pixels of like mean (rate)
 STATIC_DISPERSION = 30.0  # chi-square (7 d.o.f.) of 8 segment counts above which a pixel moves
 STATIC_P = 1e-4  # a static pixel's segment mean intervals disagree beyond this chance
-MEASURE = ("Gaussian log-likelihood of the held-out per-pixel intervals and spike counts (windows of "
-           f"{'/'.join(map(str, WINDOWS))} frames) under each model's simulation, nats per pixel")
+MEASURE = ("log-likelihood of the held-out per-pixel intervals (their whole-frame values among a pool of "
+           "pixels' simulated ones; with a changing reference or modulated light, Gaussian) and spike counts "
+           f"(Gaussian; windows of {'/'.join(map(str, WINDOWS))} frames) under each model's simulation, nats per pixel")
 # scalar parameters each effect adds to the model (the penalty, nats, of keeping it)
 PARAMETERS = {"gain_nonuniformity": 1, "column_pattern": 1, "dark_current": 2, "hot_pixels": 1, "shot_noise": 1,
               "reset_to_zero": 1, "refractory": 1, "flicker": 3, "crosstalk": 1, "nonlinearity": 1,
@@ -135,13 +175,13 @@ def _window_counts(spikes: np.ndarray, w: int) -> np.ndarray:
 
 
 def count_variance(simulated: np.ndarray, w: int, static_reference: bool,
-                   modulation: Modulation | None = None) -> np.ndarray:
+                   modulation: Modulation | None = None, floor: float = VAR_FLOOR) -> np.ndarray:
     """``[P]`` predictive variance of a pixel's count in ``w`` frames: the variance of the
     simulated counts over the windows of the whole run (``K = 1``; with a ``modulation``, about
     the modulated mean), or half the variance of the differences of consecutive windows
     (``K > 1``: the scene moves the mean); at least :data:`VAR_FLOOR` (a pixel whose count never
-    varies). Windows longer than a twelfth of the run scale from that length (renewal: the
-    variance grows with the window)."""
+    varies; ``floor`` instead where given). Windows longer than a twelfth of the run scale from
+    that length (renewal: the variance grows with the window)."""
     T = simulated.shape[0]
     wv = min(w, max(T // 12, 1))
     s = _window_counts(simulated, wv)
@@ -152,19 +192,35 @@ def count_variance(simulated: np.ndarray, w: int, static_reference: bool,
         v = s.var(axis=0, ddof=1)
     else:
         v = np.diff(s, axis=0).var(axis=0, ddof=1) / 2.0
-    return np.maximum(v * (w / wv), VAR_FLOOR)
+    return np.maximum(v * (w / wv), floor)
+
+
+def pooled_count_variance(raw: np.ndarray, rate: np.ndarray, mask: np.ndarray, w: int, T: int) -> np.ndarray:
+    """``[P]`` predictive variance of a pixel's held-out count in ``w`` frames with a static
+    reference: the :func:`count_variance` of the simulation without its floor (``raw``) pooled
+    over ``mask`` by simulated ``rate`` (:func:`pooled_variance`), at least :data:`VAR_FLOOR`,
+    times ``1 + w / T`` for the noise of the simulated rate."""
+    return np.maximum(pooled_variance(rate, raw, np.ones_like(raw), mask), VAR_FLOOR) * (1.0 + w / T)
 
 
 def score(measured: np.ndarray, simulated: np.ndarray, sim_stats: stats.PixelStats, mask: np.ndarray,
-          static_reference: bool, modulation: Modulation | None = None, measured_stats: tuple | None = None
-          ) -> HeldOutScore:
+          static_reference: bool, modulation: Modulation | None = None, measured_stats: tuple | None = None,
+          drive: np.ndarray | None = None) -> HeldOutScore:
     """The held-out score of ``measured [Th, H, W]`` under ``simulated [T, H, W]`` (the whole run,
     whose last ``Th`` frames are the held-out ones) with interval statistics ``sim_stats``;
     pixels ``mask [P]``; ``modulation``: the model's (None: none); ``measured_stats``: the
-    ``(stats.pixel_stats, stats.interval_pixels)`` of ``measured`` if already computed."""
-    if modulation is None:
-        held = None if measured_stats is None else (measured_stats[0].isi_values, measured_stats[1])
-        per_pixel = _interval_loglik(measured, (sim_stats.isi_mean, sim_stats.isi_var, sim_stats.n_isi), held)
+    ``(stats.pixel_stats, stats.interval_pixels)`` of ``measured`` if already computed;
+    ``drive [P]``: the model's drive, which the interval pools of a static reference are made by
+    (None: the simulated mean interval; bands' pass, which ``spikegen diagnose`` runs, gives it)."""
+    moments = (sim_stats.isi_mean, sim_stats.isi_var, sim_stats.n_isi)
+    held = None if measured_stats is None else (measured_stats[0].isi_values, measured_stats[1])
+    if modulation is None and static_reference:
+        pool = IntervalPool(sim_stats.isi_mean.size, simulated.shape[0])
+        pool.add(slice(0, sim_stats.isi_mean.size), stats.intervals(simulated), moments,
+                 held or stats.intervals(measured))
+        per_pixel = pool.finish(mask, None if drive is None else -np.asarray(drive, dtype=np.float64))
+    elif modulation is None:
+        per_pixel = _interval_loglik(measured, moments, held)
     else:
         per_pixel = _clock_interval_loglik(measured, simulated, modulation)
     lengths = window_lengths(measured.shape[0])
@@ -190,7 +246,7 @@ def _count_loglik(measured, simulated, mask, w: int, static_reference: bool,
         v = count_variance(simulated, w, True, modulation) * (1.0 + w / T)
     elif static_reference:
         rate = simulated.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
-        v = count_variance(simulated, w, True) * (1.0 + w / T)  # the simulated rate's own noise
+        v = pooled_count_variance(count_variance(simulated, w, True, floor=0.0), rate, mask, w, T)
         return count_loglik_given(c, s[:, mask].sum(axis=1), rate, w, v)
     else:
         m = s
@@ -205,6 +261,145 @@ def count_loglik_given(c: np.ndarray, pop: np.ndarray, rate: np.ndarray, w: int,
     factor = pop / max(pop.mean(), 1e-12)
     m = factor[:, None] * (w * rate)[None, :]
     return (-0.5 * (np.log(2 * np.pi * v) + (c - m) ** 2 / v)).sum(axis=0)
+
+
+def pooled_variance(key: np.ndarray, var: np.ndarray, weight: np.ndarray, mask: np.ndarray,
+                    size: int = POOL_PIXELS) -> np.ndarray:
+    """``[P]`` ``var`` with each pixel of ``mask`` (and a finite ``key`` and ``var``) given the
+    ``weight``-weighted mean of ``var`` over its group: those pixels sorted by ``key`` and cut into
+    consecutive groups of ``size`` (the last ones one larger where the count does not divide);
+    other pixels keep their own."""
+    var = np.asarray(var, dtype=np.float64)
+    ok = np.asarray(mask, dtype=bool) & np.isfinite(key) & np.isfinite(var)
+    idx = np.flatnonzero(ok)
+    out = var.copy()
+    if idx.size == 0:
+        return out
+    order = idx[np.argsort(key[idx], kind="stable")]
+    groups = max(order.size // max(int(size), 1), 1)
+    g = (np.arange(order.size) * groups) // order.size  # group of each sorted pixel
+    w = np.asarray(weight, dtype=np.float64)[order]
+    w = np.where(w > 0, w, 0.0)
+    sw = np.bincount(g, weights=w, minlength=groups)
+    sv = np.bincount(g, weights=w * var[order], minlength=groups)
+    plain = np.bincount(g, weights=var[order], minlength=groups) / np.bincount(g, minlength=groups)
+    mean = np.where(sw > 0, sv / np.where(sw > 0, sw, 1.0), plain)
+    out[order] = mean[g]
+    return out
+
+
+def pool_groups(key: np.ndarray, mask: np.ndarray, size: int = POOL_PIXELS) -> tuple[np.ndarray, int]:
+    """``(group [P], groups)``: the pixels of ``mask`` with a finite ``key`` sorted by it and cut
+    into consecutive groups of ``size`` (the last ones one larger where the count does not divide);
+    -1 for the other pixels."""
+    ok = np.asarray(mask, dtype=bool) & np.isfinite(key)
+    idx = np.flatnonzero(ok)
+    group = np.full(np.asarray(key).size, -1, dtype=np.int64)
+    if idx.size == 0:
+        return group, 0
+    order = idx[np.argsort(key[idx], kind="stable")]
+    groups = max(order.size // max(int(size), 1), 1)
+    group[order] = (np.arange(order.size) * groups) // order.size
+    return group, groups
+
+
+OFFSETS = 6  # whole-frame interval values kept per pixel: floor(mean) - 2 ... floor(mean) + 3
+
+
+class IntervalPool:
+    """The interval part of the held-out score with a static reference, band by band: a pixel's
+    held-out intervals scored by the log probability of each whole-frame value under its pool's
+    simulated intervals (module text).
+
+    :meth:`add` keeps, for the pixels of a band, the model's interval moments and counts of its
+    simulated and of the recording's held-out intervals at the :data:`OFFSETS` whole values from
+    ``floor(mean) - 2`` (the simulated mean), the rest of the simulated ones as a count and the
+    recording's others as values; :meth:`finish` pools the pixels of ``mask`` by a key (the
+    model's drive, :func:`pool_groups`) and returns each pixel's summed log probability ``[P]``."""
+
+    def __init__(self, P: int, frames: int):
+        self.P, self.frames = P, frames
+        self.mean, self.var, self.n = np.full(P, np.nan), np.full(P, np.nan), np.zeros(P)
+        self.base = np.zeros(P, dtype=np.int64)
+        self.sim = np.zeros((P, OFFSETS))
+        self.meas = np.zeros((P, OFFSETS))
+        self.other_pix, self.other_x = [], []
+
+    def add(self, sl: slice, sim_intervals: tuple, sim_moments: tuple, held_intervals: tuple) -> None:
+        """Pixels ``sl``: ``(values, pixels)`` of the simulated intervals (whole run) and of the
+        recording's held-out ones (pixels counted from ``sl.start``), and the simulated moments
+        ``(mean, variance, count)``."""
+        mean, var, n = (np.asarray(a, dtype=np.float64) for a in sim_moments)
+        bp = mean.size
+        self.mean[sl], self.var[sl], self.n[sl] = mean, var, n
+        base = np.where(np.isfinite(mean), np.floor(np.nan_to_num(mean)) - 2, 0).astype(np.int64)
+        self.base[sl] = base
+        for table, (x, pix) in ((self.sim, sim_intervals), (self.meas, held_intervals)):
+            x = np.asarray(x).astype(np.int64)
+            pix = np.asarray(pix).astype(np.int64)
+            off = x - base[pix]
+            inside = (off >= 0) & (off < OFFSETS) & np.isfinite(mean[pix])
+            table[sl] = np.bincount(pix[inside] * OFFSETS + off[inside], minlength=bp * OFFSETS).reshape(bp, OFFSETS)
+            if table is self.meas and (~inside).any():
+                self.other_pix.append(pix[~inside] + sl.start)
+                self.other_x.append(x[~inside])
+
+    def finish(self, mask: np.ndarray, key: np.ndarray | None = None) -> np.ndarray:
+        """``key [P]``: what the pools are made by, in its order (default: the simulated mean interval)."""
+        P, T = self.P, self.frames
+        group, G = pool_groups(self.mean if key is None else key, mask)
+        inpool = group >= 0
+        gi = group[inpool]
+        base = self.base
+        # each pool's simulated intervals: counts at whole values (from its pixels' kept values), its
+        # number of intervals and their variance about their pixels' means; the pseudo-interval and
+        # the values not kept are spread as a Gaussian of the pixel's own mean and that
+        # variance plus a frame^2
+        n = np.where(np.isfinite(self.mean), self.n, 0.0)
+        mean = np.where(np.isfinite(self.mean), self.mean, T + 1.0)
+        dof = np.where(np.isfinite(self.var), np.maximum(n - 1, 0), 0.0)
+        N = np.bincount(gi, weights=n[inpool], minlength=G)
+        kept = np.bincount(gi, weights=self.sim[inpool].sum(axis=1), minlength=G)
+        ss = np.bincount(gi, weights=(np.nan_to_num(self.var) * dof)[inpool], minlength=G)
+        sdof = np.bincount(gi, weights=dof[inpool], minlength=G)
+        sd = np.sqrt(np.where(sdof > 0, ss / np.where(sdof > 0, sdof, 1.0), 0.0) + 1.0)  # the pseudo-interval's
+        spread = 1.0 + (N - kept)
+        stride = T + 2 * OFFSETS + 64
+        own_sd = np.sqrt(np.nan_to_num(self.var, nan=0.0) + 1.0)  # a pixel in no pool: its own, plus a frame^2
+        values = (base[:, None] + np.arange(OFFSETS)[None, :])
+        keys = (group[:, None] * stride + values + 32)[inpool].reshape(-1)
+        uk, inv = np.unique(keys, return_inverse=True)
+        counts = np.bincount(inv, weights=self.sim[inpool].reshape(-1))
+
+        def logp(g, x, p):
+            """log probability of whole-frame intervals ``x`` of pixels ``p`` in pools ``g`` (-1: none)."""
+            g = np.asarray(g, dtype=np.int64)
+            x = np.asarray(x, dtype=np.float64)
+            has = g >= 0
+            gg = np.where(has, g, 0)
+            c = np.zeros(x.size)
+            if uk.size:
+                k = gg * stride + x.astype(np.int64) + 32
+                pos = np.minimum(np.searchsorted(uk, k), uk.size - 1)
+                c = np.where(has & (uk[pos] == k), counts[pos], 0.0)
+            m = mean[p]
+            s = np.where(has, sd[gg] if G else 1.0, own_sd[p])
+            # the Gaussian's mass on a whole frame, as its density at the frame (s >= 1: the sum over
+            # whole frames is 1 within 1e-8), in logs so that a far interval costs what it should
+            log_phi = -0.5 * ((x - m) / s) ** 2 - np.log(s * math.sqrt(2 * math.pi))
+            tot = np.where(has, N[gg] if G else 0.0, 0.0)
+            w = np.where(has, spread[gg] if G else 1.0, 1.0)
+            with np.errstate(divide="ignore"):
+                return np.logaddexp(np.log(c), np.log(w) + log_phi) - np.log(tot + 1.0)
+
+        out = np.zeros(P)
+        pix, off = np.nonzero(self.meas)
+        x = self.base[pix] + off
+        out += np.bincount(pix, weights=self.meas[pix, off] * logp(group[pix], x, pix), minlength=P)
+        if self.other_pix:
+            op, ox = np.concatenate(self.other_pix), np.concatenate(self.other_x)
+            out += np.bincount(op, weights=logp(group[op], ox, op), minlength=P)
+        return out
 
 
 def _interval_loglik(measured, sim_moments: tuple, measured_intervals: tuple | None = None) -> np.ndarray:
