@@ -1090,7 +1090,8 @@ beside a 400 x 400 protocol run and `docs/make_fidelity.py` (commit 6c2caf3 and 
 
 Measured again on 2026-11-26 after the held-out score's intervals became whole-frame values pooled
 by drive (each simulated band's intervals are listed once more), default threads, beside a 400 x 400
-protocol run (and, for the first, the test suite and `docs/make_fidelity.py`):
+protocol run (and, for the second, the test suite); the bench's output
+is in bench/results/diagnose_speed_20261126.txt:
 
 | recording | wall | CPU | peak RSS | diagnosis / one simulation (the simulation) | load before, after |
 |---|---|---|---|---|---|

@@ -266,25 +266,22 @@ def count_loglik_given(c: np.ndarray, pop: np.ndarray, rate: np.ndarray, w: int,
 def pooled_variance(key: np.ndarray, var: np.ndarray, weight: np.ndarray, mask: np.ndarray,
                     size: int = POOL_PIXELS) -> np.ndarray:
     """``[P]`` ``var`` with each pixel of ``mask`` (and a finite ``key`` and ``var``) given the
-    ``weight``-weighted mean of ``var`` over its group: those pixels sorted by ``key`` and cut into
-    consecutive groups of ``size`` (the last ones one larger where the count does not divide);
-    other pixels keep their own."""
+    ``weight``-weighted mean of ``var`` over its group of :func:`pool_groups`; other pixels keep
+    their own."""
     var = np.asarray(var, dtype=np.float64)
-    ok = np.asarray(mask, dtype=bool) & np.isfinite(key) & np.isfinite(var)
-    idx = np.flatnonzero(ok)
     out = var.copy()
-    if idx.size == 0:
+    group, groups = pool_groups(key, np.asarray(mask, dtype=bool) & np.isfinite(var), size)
+    pooled = group >= 0
+    if not pooled.any():
         return out
-    order = idx[np.argsort(key[idx], kind="stable")]
-    groups = max(order.size // max(int(size), 1), 1)
-    g = (np.arange(order.size) * groups) // order.size  # group of each sorted pixel
-    w = np.asarray(weight, dtype=np.float64)[order]
+    g = group[pooled]
+    w = np.asarray(weight, dtype=np.float64)[pooled]
     w = np.where(w > 0, w, 0.0)
     sw = np.bincount(g, weights=w, minlength=groups)
-    sv = np.bincount(g, weights=w * var[order], minlength=groups)
-    plain = np.bincount(g, weights=var[order], minlength=groups) / np.bincount(g, minlength=groups)
+    sv = np.bincount(g, weights=w * var[pooled], minlength=groups)
+    plain = np.bincount(g, weights=var[pooled], minlength=groups) / np.bincount(g, minlength=groups)
     mean = np.where(sw > 0, sv / np.where(sw > 0, sw, 1.0), plain)
-    out[order] = mean[g]
+    out[pooled] = mean[g]
     return out
 
 
@@ -350,7 +347,6 @@ class IntervalPool:
         group, G = pool_groups(self.mean if key is None else key, mask)
         inpool = group >= 0
         gi = group[inpool]
-        base = self.base
         # each pool's simulated intervals: counts at whole values (from its pixels' kept values), its
         # number of intervals and their variance about their pixels' means; the pseudo-interval and
         # the values not kept are spread as a Gaussian of the pixel's own mean and that
@@ -366,7 +362,7 @@ class IntervalPool:
         spread = 1.0 + (N - kept)
         stride = T + 2 * OFFSETS + 64
         own_sd = np.sqrt(np.nan_to_num(self.var, nan=0.0) + 1.0)  # a pixel in no pool: its own, plus a frame^2
-        values = (base[:, None] + np.arange(OFFSETS)[None, :])
+        values = self.base[:, None] + np.arange(OFFSETS)[None, :]
         keys = (group[:, None] * stride + values + 32)[inpool].reshape(-1)
         uk, inv = np.unique(keys, return_inverse=True)
         counts = np.bincount(inv, weights=self.sim[inpool].reshape(-1))
