@@ -316,9 +316,10 @@ def study_diagnose(data, md):
            table(rows, ["recording", "motion search", "travel rows / columns (fit frames)", "pixels not judged for it",
                          "named", "held-out ideal", "held-out fitted", "pixels judged"]), "",
            "The held-out score (nats per pixel, higher is better) compares models within one row. Across the rows "
-           "of one recording it does not compare: with a moving reference the count part of the score predicts "
-           "each window's count by one simulated draw (heldout.py, `K > 1`), a wider predictive than the static "
-           "reference's, so the same data score lower.", ""]
+           "of one recording it does not compare: with a moving reference most judged pixels' intervals are "
+           "scored by a Gaussian density and the counts follow the reference's course, with a still one the "
+           "intervals by the probabilities of their whole-frame values and the counts by the population's "
+           "factor (heldout.py), so the two rows score different things.", ""]
 
 
 def main(argv=None):

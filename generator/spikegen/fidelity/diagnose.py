@@ -150,7 +150,7 @@ def diagnose(spikes: np.ndarray, radiance, intensity: float, baseline: Sensor | 
 
 def score_sensor(spikes: np.ndarray, radiance, intensity: float, sensor: Sensor, baseline: Sensor | None = None,
                  fit_fraction: float = FIT_FRACTION, band_rows: int | None = None) -> heldout.HeldOutScore:
-    """The held-out score (the JSON's ``"heldout"`` measure, heldout.score) of a given ``sensor``
+    """The held-out score (the JSON's ``"heldout"`` measure, heldout.MEASURE) of a given ``sensor``
     on this recording: the same fit window, reference (``"self"``: from the fit window's rates
     through ``baseline``), static pixels and simulation seed as :func:`diagnose`."""
     spikes = _check_stream(spikes, intensity)
