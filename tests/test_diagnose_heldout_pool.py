@@ -1,20 +1,21 @@
-"""The held-out score with a static reference (`spikegen.fidelity.heldout`): a pixel's held-out
-intervals scored by the probability of their whole-frame values among the simulated intervals of
-the 64 judged pixels of nearest drive, so that the score ranks the true model first at the
-temporal noise of real sensors.
+"""The held-out score (`spikegen.fidelity.heldout`) with a still or a changing reference: a pixel's
+held-out intervals scored by the probability of their whole-frame values among the simulated
+intervals of the 64 judged pixels of nearest drive, so that the score ranks the true model first at
+the temporal noise of real sensors.
 
 Until 2026-11-26 the score read each pixel's held-out intervals through a Gaussian of that pixel's
 own simulated interval mean and variance, at least a twelfth of a frame^2. On recordings with shot
 noise of N_e = 1.38e4 (the car's measured interval variance) it scored the true model below the
-ideal sensor: the first two tests (three cases) failed on it, at z -5.0 to -6.7.
+ideal sensor: the ``still`` cases of the first two tests (three cases) failed on it, at z -5.0 to
+-6.7.
 
 With a reference that changes (sub-frames ``K > 1``) the intervals kept that Gaussian, and the
 counts were scored against one simulated draw, a while longer. The ``changing`` cases of the first
 three tests failed on it: the true shot noise at z -0.34 and -0.19, the preset's noise on its own
 recording at z -2.4 (ranked below the ideal sensor), the ideal sensor on an ideal recording at
-z -1.8 (asked: below -3). Now the judged pixels whose reference stays
-within 10 % of its mean are pooled as with a still one, and every judged pixel's counts are
-predicted as its simulated rate times the reference's course in time.
+z -1.8 (asked: below -3). Now the judged pixels whose reference stays within 10 % of its mean are
+pooled as with a still one, and every judged pixel's counts are predicted as its simulated rate
+times the reference's course in time.
 """
 from __future__ import annotations
 
