@@ -9,7 +9,8 @@
 # (default 540). STAGEs, in the order given (default: tests spikelik profile baselines converge):
 #   tests      pytest -m gpu tests/test_trainer_gpu.py
 #   spikelik   the protocol's spikelik run, rsir i32 400 x 400, seed 0, default 9000 iterations
-#   profile    bench_trainer_profile.py on that run (where a step's time goes)
+#   profile    bench_trainer_profile.py on a run trained here (where a step's time goes): the spikelik
+#              stage's, else the rays stage's, else the stop stage's
 #   baselines  the other methods at rsir i32, seed 0
 #   converge   spikelik with 27000 iterations (converged at 9000 if within 0.3 dB)
 #   converge81 spikelik with 81000 iterations (converged at 27000?); resumes across calls on a warm machine
@@ -18,6 +19,9 @@
 #   rays       spikelik with 8192 rays a step for 6750 iterations (the rays of 27000 at the default 2048;
 #              chosen on the procedural lego, docs/trainer.md "Rays a step")
 #   rays3      the same with 20250 iterations (converged at 6750 if within 0.3 dB)
+#   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
+#              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
+#              whether its fewer steps make it faster on the GPU)
 # Rows go to OUT/protocol_gpu.jsonl (bench/bench_protocol.py --results), which starts as a copy of
 # bench/results/protocol_gpu.jsonl, so runs recorded there are skipped; copy it back afterwards.
 # Work folders stay in bench_out/protocol, so a run cut by the budget resumes in a later call.
@@ -28,7 +32,7 @@ BUDGET=${3:-540}
 shift $(( $# < 3 ? $# : 3 ))
 STAGES=${*:-tests spikelik profile baselines converge}
 for st in $STAGES; do
-    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k) ;; *) echo "unknown stage $st"; exit 2 ;; esac
 done
 T0=$(date +%s)
 mkdir -p "$OUT"
@@ -78,15 +82,20 @@ for st in $STAGES; do
     case $st in
         tests) stage gpu_tests python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_trainer_gpu.py ;;
         spikelik) stage protocol_9000 $P --methods spikelik --seeds 0 ;;
-        profile) if [ -f "$RUN/checkpoint.pt" ]; then
-                     stage profile python3 bench/bench_trainer_profile.py "$RUN" --steps 200 --device cuda --count 20
-                 else echo "profile: no $RUN here (run the spikelik stage first)"; fi ;;
+        profile) PR=""  # the first trained run here: the protocol's 9000 iterations, the 8192-ray one, the stop pair's
+                 for r in "$RUN" "${RUN/9000/6750}_rays8192" bench_out/stop_ab_default; do
+                     [ -f "$r/checkpoint.pt" ] && { PR=$r; break; }
+                 done
+                 if [ -n "$PR" ]; then
+                     stage profile python3 bench/bench_trainer_profile.py "$PR" --steps 200 --device cuda --count 20
+                 else echo "profile: no trained run here (run the spikelik, rays or stop stage first)"; fi ;;
         baselines) stage protocol_baselines $P --methods tfi,spikenerf-paper,spikenerf,spikenerf-noR,tfp256,tfp32 \
                        --seeds 0 ;;
         converge) stage protocol_27000 $P --methods spikelik --seeds 0 --iters 27000 ;;
         converge81) stage protocol_81000 $P --methods spikelik --seeds 0 --iters 81000 ;;
         rays) stage protocol_rays8192_6750 $P --methods spikelik --seeds 0 --iters 6750 --batch-rays 8192 ;;
         rays3) stage protocol_rays8192_20250 $P --methods spikelik --seeds 0 --iters 20250 --batch-rays 8192 ;;
+        rays32k) stage protocol_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 --batch-rays 32768 ;;
         stop) if [ -d "$DATA" ]; then stage stop_ab bash -c stop_ab
               else echo "stop: no $DATA here (run the spikelik stage first)"; fi ;;
     esac
