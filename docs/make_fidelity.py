@@ -547,16 +547,17 @@ def study_joint(real, md, results):
            for label, _, key in JOINT_RECORDINGS}
     preset = results["electrons"]
     grid = sorted(set(JOINT_GRID) | set(own.values()) | {preset})
-    scores = {label: {e: score_sensor(s, "self", 256.0, Sensor(name="shot", electrons=0.0 if math.isinf(e) else e)).mean
+    graded = {label: {e: score_sensor(s, "self", 256.0, Sensor(name="shot", electrons=0.0 if math.isinf(e) else e))
                       for e in grid} for label, s in data.items()}
+    scores = {label: {e: sc.mean for e, sc in by_e.items()} for label, by_e in graded.items()}
     shared = max(grid, key=lambda e: sum(scores[label][e] for label in data))
     fitted_scores = {label: score_sensor(s, "self", 256.0, preset_sensor(results, "shot")) for label, s in data.items()}
     fitted = {label: sc.mean for label, sc in fitted_scores.items()}
-    # the preset against the ideal sensor: z of the summed per-pixel differences (HeldOutScore.improvement)
-    ideal_scores = {label: score_sensor(s, "self", 256.0, Sensor(name="shot", electrons=0.0)) for label, s in data.items()}
+    # the preset against the ideal sensor (the grid's N_e = inf): z of the summed per-pixel
+    # differences (HeldOutScore.improvement)
     fitted_z = {}
     for label in data:
-        g, se = fitted_scores[label].improvement(ideal_scores[label])
+        g, se = fitted_scores[label].improvement(graded[label][math.inf])
         fitted_z[label] = g / se if se > 0 else 0.0
     car, low = (label for label, _, _ in JOINT_RECORDINGS)
     rows = []

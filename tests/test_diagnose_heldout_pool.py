@@ -153,5 +153,5 @@ def test_the_reference_course_is_the_drive_over_its_mean():
     t = np.arange(100)
     x = np.interp(t, [25, 75], [0.1, 0.3])
     drive = x + 0.05
-    f = course.window_factor(10, 50, 5, slice(0, 1))[:, 0]
+    f = course.window_factor(10, 50, 5)[:, 0]
     assert np.allclose(f, drive[50:100].reshape(5, 10).mean(axis=1) / drive.mean())

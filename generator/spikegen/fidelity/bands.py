@@ -233,24 +233,23 @@ class _HeldOutScore:
         self.static_ref = ctx.X.shape[0] == 1
         self.modulation = heldout.model_modulation(sensor, ctx.X, ctx.intensity, T)
         self.lengths = heldout.window_lengths(T - Tf)
-        # the count means need the population factor of all pixels (a static reference) or the
-        # reference's course (one that changes); their variances are pooled by rate
-        self.pooled = self.modulation is None
-        if self.pooled and not self.static_ref:
-            self.course = heldout.ReferenceCourse(ctx.X, ctx.intensity, sensor.maps(*ctx.shape)[1], T)
         self.interval_ll = np.zeros(P)
         self.count_ll = {w: np.zeros(P) for w in self.lengths}
         self.rate, self.cvar = np.zeros(P), {w: np.zeros(P) for w in self.lengths}
         self.pop = {w: 0.0 for w in self.lengths}
-        # intervals are pooled without modulation: with a changing reference, on the judged pixels
-        # whose reference stays within heldout.QUASI_STILL of its mean (the others: their own Gaussian)
-        self.pool_intervals = self.modulation is None
-        if self.pool_intervals:
+        # without modulation intervals and counts are pooled: the intervals on the judged pixels
+        # (with a changing reference, those whose reference stays within heldout.QUASI_STILL of its
+        # mean; the others: their own Gaussian), the counts' variances by rate, their means times
+        # the population's factor (a static reference) or the reference's course (one that changes)
+        self.pooled = self.modulation is None
+        if self.pooled:
+            R, d = sensor.maps(*ctx.shape)
+            if not self.static_ref:
+                self.course = heldout.ReferenceCourse(ctx.X, ctx.intensity, d, T)
             self.intervals = heldout.IntervalPool(P, T)
             self.judged_pooled = ctx.static & heldout.quasi_still(ctx.X)
             # the pools: pixels of like drive (charge per frame in thresholds, R (I X / 256 + d),
             # X's mean over the sub-frames, before the readout makes whole-frame intervals of it)
-            R, d = sensor.maps(*ctx.shape)
             self.drive = (R * (ctx.intensity / 256.0 * ctx.X.mean(axis=0) + d)).reshape(-1)
 
     def add(self, sl: slice, band: _Band) -> None:
@@ -258,34 +257,32 @@ class _HeldOutScore:
         meas, sim = band.meas, band.sim
         T, Th = sim.shape[0], meas.shape[0]
         band_mask = self.ctx.static[sl]
-        if self.pool_intervals:  # pooled over the judged pixels in finish()
+        if self.pooled:  # pooled over the judged pixels in finish()
             held_intervals = stats.intervals(meas, times=band.times("meas"))
             self.intervals.add(sl, stats.intervals(sim), band.moments(), held_intervals)
             if not self.static_ref:  # for the judged pixels that are not pooled
                 self.interval_ll[sl] = heldout._interval_loglik(meas, band.moments(), held_intervals)
+            self.rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
             band_mod = None
         else:
             band_mod = heldout.Modulation(self.modulation.phi, self.modulation.share[sl])
             self.interval_ll[sl] = heldout._clock_interval_loglik(meas, sim, band_mod)
-        if self.pooled:
-            self.rate[sl] = sim.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
         for w in self.lengths:
             if self.pooled and self.static_ref:
                 s = band.windows("held", w)
                 self.pop[w] = self.pop[w] + s[:, band_mask].sum(axis=1)
                 self.cvar[w][sl] = band.count_variance(w, True, floor=0.0)
             elif self.pooled:
-                self.cvar[w][sl] = heldout.course_count_variance(sim, w, self.rate[sl], self.course, sl)
+                self.cvar[w][sl] = heldout.count_variance(sim, w, False, self.course.part(sl), floor=0.0)
             else:
                 self.count_ll[w][sl] = heldout._count_loglik(meas, sim, w, self.static_ref, band_mod)
 
     def finish(self) -> heldout.HeldOutScore:
         ctx, lengths = self.ctx, self.lengths
         W = ctx.shape[1]
-        if self.pool_intervals:
+        if self.pooled:
             pooled = self.intervals.finish(self.judged_pooled, -self.drive)
             self.interval_ll = np.where(self.judged_pooled, pooled, self.interval_ll)
-        if self.pooled:  # the counts' means times the population's factor or the reference's course
             cvar = {w: heldout.pooled_count_variance(self.cvar[w], self.rate, ctx.static, w, ctx.frames)
                     for w in lengths}
             for r0, r1 in bands(ctx.shape[0], ctx.rows):
@@ -295,7 +292,7 @@ class _HeldOutScore:
                     if self.static_ref:
                         factor = self.pop[w] / max(self.pop[w].mean(), 1e-12)
                     else:
-                        factor = self.course.window_factor(w, ctx.Tf, c.shape[0], sl)
+                        factor = self.course.part(sl).window_factor(w, ctx.Tf, c.shape[0])
                     self.count_ll[w][sl] = heldout.count_loglik_given(c, factor, self.rate[sl], w, cvar[w][sl])
         per_pixel = self.interval_ll
         for w in lengths:

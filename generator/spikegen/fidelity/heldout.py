@@ -33,8 +33,8 @@ under the predictive distributions a sensor's simulation gives them:
      :class:`ReferenceCourse`); with a modulated model (its flicker), the modulation's mean over
      the window (``K = 1``), or the simulated count itself (``K > 1``);
    * variance: without modulation, that of the simulated counts of the pixel in windows of ``w``
-     frames over the whole run about their mean (``K = 1``: :func:`count_variance`; ``K > 1``:
-     :func:`course_count_variance`), averaged over the :data:`POOL_PIXELS` judged pixels of
+     frames over the whole run about their mean (:func:`count_variance`; ``K > 1``: about the
+     reference's course), averaged over the :data:`POOL_PIXELS` judged pixels of
      nearest simulated rate (:func:`pooled_count_variance`), at least :data:`VAR_FLOOR`, times
      ``1 + w / T`` for the noise of the simulated rate; with modulation, the pixel's own
      (:func:`count_variance`) times ``1 + w / T`` (``K = 1``), or twice it (``K > 1``: the mean is
@@ -195,17 +195,19 @@ def _window_counts(spikes: np.ndarray, w: int) -> np.ndarray:
 
 
 def count_variance(simulated: np.ndarray, w: int, static_reference: bool,
-                   modulation: Modulation | None = None, floor: float = VAR_FLOOR) -> np.ndarray:
+                   modulation: "Modulation | ReferenceCourse | None" = None, floor: float = VAR_FLOOR) -> np.ndarray:
     """``[P]`` predictive variance of a pixel's count in ``w`` frames: the variance of the
-    simulated counts over the windows of the whole run (``K = 1``; with a ``modulation``, about
-    the modulated mean), or half the variance of the differences of consecutive windows
-    (``K > 1``: the scene moves the mean); at least :data:`VAR_FLOOR` (a pixel whose count never
-    varies; ``floor`` instead where given). Windows longer than a twelfth of the run scale from
-    that length (renewal: the variance grows with the window)."""
+    simulated counts over the windows of the whole run (``K = 1``), or half the variance of the
+    differences of consecutive windows (``K > 1``: the scene moves the mean); with a
+    ``modulation`` (a :class:`Modulation`, or the :class:`ReferenceCourse` of these pixels), the
+    variance about ``w rate`` times its window factor, whatever ``static_reference`` says; at
+    least :data:`VAR_FLOOR` (a pixel whose count never varies; ``floor`` instead where given).
+    Windows longer than a twelfth of the run scale from that length (renewal: the variance grows
+    with the window)."""
     T = simulated.shape[0]
     wv = min(w, max(T // 12, 1))
     s = _window_counts(simulated, wv)
-    if static_reference and modulation is not None:
+    if modulation is not None:
         rate = simulated.reshape(T, -1).sum(axis=0, dtype=np.int64) / T
         v = ((s - wv * rate[None, :] * modulation.window_factor(wv, 0, s.shape[0])) ** 2).sum(axis=0) / (s.shape[0] - 1)
     elif static_reference:
@@ -237,25 +239,19 @@ class ReferenceCourse:
         self.dark = np.asarray(dark, dtype=np.float64).reshape(-1)
         self.mean = self.scale * (self.weights.mean(axis=0) @ self.X) + self.dark
 
-    def window_factor(self, w: int, start: int, n: int, sl: slice) -> np.ndarray:
-        """``[n, pixels of sl]`` mean ``f_p`` over ``n`` consecutive windows of ``w`` frames from
-        frame ``start`` (1 where the mean drive is 0)."""
+    def part(self, sl: slice) -> "ReferenceCourse":
+        """The course of the pixels ``sl`` alone (views of the same arrays)."""
+        out = object.__new__(ReferenceCourse)
+        out.weights, out.scale = self.weights, self.scale
+        out.X, out.dark, out.mean = self.X[:, sl], self.dark[sl], self.mean[sl]
+        return out
+
+    def window_factor(self, w: int, start: int, n: int) -> np.ndarray:
+        """``[n, P]`` mean ``f_p`` over ``n`` consecutive windows of ``w`` frames from frame
+        ``start`` (1 where the mean drive is 0), as :meth:`Modulation.window_factor`."""
         Wn = self.weights[start: start + n * w].reshape(n, w, -1).mean(axis=1)
-        drive = self.scale * (Wn @ self.X[:, sl]) + self.dark[sl][None, :]
-        mean = self.mean[sl]
-        return np.where(mean > 0, drive / np.where(mean > 0, mean, 1.0), 1.0)
-
-
-def course_count_variance(simulated: np.ndarray, w: int, rate: np.ndarray, course: ReferenceCourse,
-                          sl: slice) -> np.ndarray:
-    """``[pixels of sl]`` variance of the simulated counts of windows of ``w`` frames over the
-    whole run about ``w rate`` times the reference's course (:class:`ReferenceCourse`), without a
-    floor; windows longer than a twelfth of the run scale from that length, as :func:`count_variance`."""
-    T = simulated.shape[0]
-    wv = min(w, max(T // 12, 1))
-    s = _window_counts(simulated, wv)
-    m = wv * rate[None, :] * course.window_factor(wv, 0, s.shape[0], sl)
-    return ((s - m) ** 2).sum(axis=0) / max(s.shape[0] - 1, 1) * (w / wv)
+        drive = self.scale * (Wn @ self.X) + self.dark[None, :]
+        return np.where(self.mean > 0, drive / np.where(self.mean > 0, self.mean, 1.0), 1.0)
 
 
 def quasi_still(X: np.ndarray) -> np.ndarray:
@@ -343,7 +339,7 @@ OFFSETS = 6  # whole-frame interval values kept per pixel: floor(mean) - 2 ... f
 
 
 class IntervalPool:
-    """The interval part of the held-out score with a static reference, band by band: a pixel's
+    """The interval part of the held-out score without modulation, band by band: a pixel's
     held-out intervals scored by the log probability of each whole-frame value under its pool's
     simulated intervals (module text).
 
