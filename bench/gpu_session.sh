@@ -10,7 +10,7 @@
 #   tests      pytest -m gpu tests/test_trainer_gpu.py
 #   spikelik   the protocol's spikelik run, rsir i32 400 x 400, seed 0, default 9000 iterations
 #   profile    bench_trainer_profile.py on a run trained here (where a step's time goes): the spikelik
-#              stage's, else the rays stage's, else the stop stage's
+#              stage's, else the rays stage's, else the rays32k stage's, else the stop stage's
 #   baselines  the other methods at rsir i32, seed 0
 #   converge   spikelik with 27000 iterations (converged at 9000 if within 0.3 dB)
 #   converge81 spikelik with 81000 iterations (converged at 27000?); resumes across calls on a warm machine
@@ -82,8 +82,9 @@ for st in $STAGES; do
     case $st in
         tests) stage gpu_tests python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_trainer_gpu.py ;;
         spikelik) stage protocol_9000 $P --methods spikelik --seeds 0 ;;
-        profile) PR=""  # the first trained run here: the protocol's 9000 iterations, the 8192-ray one, the stop pair's
-                 for r in "$RUN" "${RUN/9000/6750}_rays8192" bench_out/stop_ab_default; do
+        profile) PR=""  # the first trained run here: the protocol's 9000 iterations, the 8192-ray one, the
+                 # 32768-ray one, the stop pair's
+                 for r in "$RUN" "${RUN/9000/6750}_rays8192" "${RUN/9000/5063}_rays32768" bench_out/stop_ab_default; do
                      [ -f "$r/checkpoint.pt" ] && { PR=$r; break; }
                  done
                  if [ -n "$PR" ]; then
