@@ -42,7 +42,10 @@ def test_targets_margins_and_verdicts():
     assert cells[4] == "-0.70 (not met; 1 of 3 seeds)"                 # calibrated 24.4 vs true 25.1
     assert cells[5] == "+4.00"                                         # oracle 26.1 over the port 22.1
     i16 = next(line for line in table if "| i16 |" in line)
-    assert [c.strip() for c in i16.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]
+    assert [c.strip() for c in i16.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]   # no port at i16: no ceiling
+    rows += [_row("spikenerf-paper", "true maps", 21.0, intensity=16)]
+    i16 = next(line for line in make_protocol.targets(rows) if "| i16 |" in line)
+    assert [c.strip() for c in i16.split("|")[1:-1]][5] == "+5.10 (i64's oracle)"  # the oracle reads no spikes
     assert not any("| i32 |" in line for line in table)                # no default run: no line
     other = next(line for line in table if "9000 it" in line)         # not mixed into the 3000 means
     assert [c.strip() for c in other.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]

@@ -258,6 +258,35 @@ def test_oracle_learns_the_sphere_from_its_images_and_needs_them(dataset, tmp_pa
     assert r.exit_code == 2 and "no ground-truth image" in r.output and not (tmp_path / "bad").exists()
 
 
+def test_oracle_does_not_depend_on_the_intensity(tmp_path):
+    """The oracle reads the ground-truth images and poses, never the spikes: the same seed trains the
+    same field, to the bit, from datasets of one scene at two intensities (bench/make_protocol.py
+    lets one intensity's oracle runs stand for the others on this)."""
+    from spikegen.dataset import convert
+    from spikenerf.eval import evaluate
+
+    src = tmp_path / "src"
+    frames = []
+    for k in range(6):
+        _sphere_png(src / f"train/r_{k}.png")
+        frames.append({"file_path": f"./train/r_{k}", "transform_matrix": _pose(1.0 * k, 0.3).tolist()})
+    write_json_atomic(src / "transforms_train.json", {"camera_angle_x": ANGLE_X, "frames": frames})
+    folders = convert(src, tmp_path / "ds", [16, 64], sensor="rsir", progress=False)
+    assert len(folders) == 2 and (folders[0] / "train/r_0.dat").read_bytes() != (folders[1] / "train/r_0.dat").read_bytes()
+    fields, metrics = [], []
+    for k, folder in enumerate(folders):
+        run = tmp_path / f"oracle{k}"
+        train(_cfg(folder, method="oracle", iters=60), run, progress=False)
+        ck = torch.load(run / "checkpoint.pt", weights_only=False)
+        fields.append((ck["field"], ck["state"]))
+        metrics.append(evaluate(run, progress=False))
+    (conf0, state0), (conf1, state1) = fields
+    assert conf0 == conf1 and state0.keys() == state1.keys()
+    assert sum(torch.is_tensor(v) for v in state0.values()) >= 3  # the grid and the decoder's weights
+    assert all(torch.equal(v, state1[k]) if torch.is_tensor(v) else v == state1[k] for k, v in state0.items())
+    assert metrics[0]["psnr"] == metrics[1]["psnr"] and metrics[0]["per_view"] == metrics[1]["per_view"]
+
+
 def test_training_crops_the_grid_to_the_object(dataset, tmp_path):
     """With the fitted box (the default for an object on white) the grid ends up over a box that
     holds the sphere (radius 0.9) and is smaller than the cube [-1.5, 1.5]^3; without it, the cube."""
