@@ -35,6 +35,7 @@ from pathlib import Path
 import torch
 from torch.utils._python_dispatch import TorchDispatchMode
 
+from spikegen.errors import InputError
 from spikenerf.config import TrainConfig
 from spikenerf.train import train
 
@@ -132,9 +133,19 @@ def main() -> None:
     ap.add_argument("--rows", type=int, default=25, help="operators in the table")
     ap.add_argument("--count", type=int, default=0, help="steps more under the host-work counter (0: none)")
     args = ap.parse_args()
+    missing = [n for n in ("config.json", "checkpoint.pt") if not (args.run / n).is_file()]
+    if missing:
+        ap.exit(2, f"bench_trainer_profile.py: {args.run} is not a trained run (no {' or '.join(missing)})\n")
+    if args.steps < 2 or args.rows < 1 or args.count < 0:
+        ap.exit(2, "bench_trainer_profile.py: --steps must be at least 2, --rows at least 1, --count at least 0\n")
+    if args.device == "cuda" and not torch.cuda.is_available():
+        ap.exit(2, "bench_trainer_profile.py: --device cuda asked for, but this machine has no CUDA GPU\n")
     saved = json.loads((args.run / "config.json").read_text())
     keys = {f.name for f in dataclasses.fields(TrainConfig)}
-    cfg = TrainConfig(**{k: v for k, v in saved.items() if k in keys})
+    # the settings the checkpoint was trained with win over config.json's; a run from before early ray
+    # termination trained without it (the trainer's own reading of such a checkpoint)
+    made = {"stop_transmittance": 0.0, **_checkpoint(args.run)["config"]}
+    cfg = TrainConfig(**{k: v for k, v in {**saved, **made}.items() if k in keys})
     cfg = dataclasses.replace(cfg, device=args.device, checkpoint_every_s=1e9, checkpoint_every=10 ** 9)
     done = int(_checkpoint(args.run)["iteration"])
     half = max(args.steps // 2, 1)
@@ -165,4 +176,7 @@ def main() -> None:
 
 
 if __name__ == "__main__":
-    main()
+    try:
+        main()
+    except InputError as e:  # a run the trainer cannot continue: its one line
+        raise SystemExit(f"bench_trainer_profile.py: {e}")
