@@ -17,7 +17,8 @@ seconds, the load average) and every metric (means and per view). A run already 
 skipped, so a long table is completed over several sessions; work folders live in ``--out``, and a
 run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
 resumed from; its wall_seconds are this session's only; train_seconds add up over sessions).
-``--calibrated`` adds, for every method that uses the sensor's maps, a run with the maps of
+``--jobs N`` trains N runs at once (on a GPU, whose step is bound by the host, several runs share it
+well); their rows say ``jobs``. ``--calibrated`` adds, for every method that uses the sensor's maps, a run with the maps of
 ``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
 real camera has) instead of the dataset's true maps. No setting is chosen here: every method runs
 with the trainer's defaults. ``oracle`` (not a spike method; it knows the ground-truth images of the
@@ -234,6 +235,9 @@ def main() -> None:
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
     ap.add_argument("--device", default="auto")
+    ap.add_argument("--jobs", type=int, default=1, help="runs trained at once, each its own process (a GPU step is "
+                    "bound by the host: several runs share one GPU well); rows made with more than one say so "
+                    "(jobs), their seconds are those of a shared machine")
     ap.add_argument("--workers", type=int, default=1, help="local processes that make a dataset (spikegen --workers; "
                     "every view carries its own seed, so the bytes do not depend on it)")
     ap.add_argument("--out", type=Path, default=REPO / "bench_out" / "protocol")
@@ -245,18 +249,67 @@ def main() -> None:
     unknown = [m for m in args.methods if m not in KNOWLEDGE]
     if unknown or ("lego" in args.data and not LEGO.is_dir()):
         sys.exit(f"unknown methods {unknown}" if unknown else f"{LEGO} not found: the real lego is needed")
+    if args.jobs < 1:
+        sys.exit("--jobs must be at least 1")
     done = done_keys(args.results)
     models = {s: sensor_model(s) for s in args.sensors}
     args.results.parent.mkdir(parents=True, exist_ok=True)
+    todo = []
     for data, sensor, i, cell in cells(args):
         cell["sensor_model"] = models[sensor]
         if row_key(cell) in done:
             continue
-        row = run_one(dataset(data, sensor, i, args), cell, args)
-        with args.results.open("a") as fh:
-            fh.write(json.dumps(row) + "\n")
-        print(f"  {data} {sensor} i{i} {cell['method']} seed {cell['seed']}: PSNR {row['metrics']['psnr']:.2f} / "
-              f"object {row['metrics']['psnr_object']:.2f}, train {row['train_seconds']:.0f} s", flush=True)
+        if args.jobs == 1:
+            _record(run_one(dataset(data, sensor, i, args), cell, args), args)
+        else:
+            todo.append((data, sensor, i, cell))
+    if todo:
+        run_parallel(todo, args)
+
+
+def _record(row: dict, args) -> None:
+    """Append a finished run's row to the results file and say what it scored."""
+    with args.results.open("a") as fh:
+        fh.write(json.dumps(row) + "\n")
+    print(f"  {row['data']} {row['sensor']} i{row['intensity']} {row['method']} seed {row['seed']}: PSNR "
+          f"{row['metrics']['psnr']:.2f} / object {row['metrics']['psnr_object']:.2f}, train "
+          f"{row['train_seconds']:.0f} s", flush=True)
+
+
+def run_parallel(todo: list, args) -> None:
+    """``--jobs N``: the runs, N at once, each row appended by this process as its run finishes. A run's
+    dataset (and calibration) is made by this process, one at a time, when the first run that needs it
+    is about to start (while the runs already started go on). A run that fails stops new ones from
+    starting; those under way finish and are recorded, then the failure's message ends the program."""
+    from concurrent.futures import FIRST_COMPLETED, ThreadPoolExecutor, wait
+
+    folders = {}
+    failure = None
+    queue = list(todo)
+    with ThreadPoolExecutor(args.jobs) as pool:
+        running = set()
+        while queue or running:
+            while queue and failure is None and len(running) < args.jobs:
+                data, sensor, i, cell = queue.pop(0)
+                try:
+                    if (data, sensor, i) not in folders:
+                        folders[(data, sensor, i)] = dataset(data, sensor, i, args)
+                    if cell["knowledge"] == "calibrated maps":
+                        calibration(sensor, args)
+                except SystemExit as e:  # a dataset that could not be made: no run starts after it
+                    failure = e
+                    break
+                running.add(pool.submit(run_one, folders[(data, sensor, i)], cell, args))
+            if not running:
+                break
+            finished, running = wait(running, return_when=FIRST_COMPLETED)
+            for fut in finished:
+                try:
+                    _record({**fut.result(), "jobs": args.jobs}, args)
+                except SystemExit as e:  # _run's one line
+                    failure = failure or e
+    if failure is not None:
+        raise failure
 
 
 if __name__ == "__main__":

@@ -19,6 +19,14 @@
 #   rays       spikelik with 8192 rays a step for 6750 iterations (the rays of 27000 at the default 2048;
 #              chosen on the procedural lego, docs/trainer.md "Rays a step")
 #   rays3      the same with 20250 iterations (converged at 6750 if within 0.3 dB)
+#   fill       the 400 x 400 protocol's missing runs at the default budget (bench/make_protocol.py "Still
+#              missing"), JOBS (default 4) at once on the one GPU (a step is bound by the host, so runs
+#              share the GPU well): sensors FILL_SENSORS (default rsir,paper,calibrated), intensities
+#              FILL_INTENSITIES (default 16,32,64), every spike method and seed, with --calibrated; a
+#              dataset is made when its first run is due, where the machine has none (about 70 s each
+#              with 16 workers). Runs already in
+#              bench/results/protocol.jsonl (the CPU's) are skipped too: OUT/protocol_gpu.jsonl starts with
+#              them and they are dropped from it at the end
 #   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
 #              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
 #              whether its fewer steps make it faster on the GPU)
@@ -32,7 +40,7 @@ BUDGET=${3:-540}
 shift $(( $# < 3 ? $# : 3 ))
 STAGES=${*:-tests spikelik profile baselines converge}
 for st in $STAGES; do
-    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|fill) ;; *) echo "unknown stage $st"; exit 2 ;; esac
 done
 T0=$(date +%s)
 mkdir -p "$OUT"
@@ -97,6 +105,15 @@ for st in $STAGES; do
         rays) stage protocol_rays8192_6750 $P --methods spikelik --seeds 0 --iters 6750 --batch-rays 8192 ;;
         rays3) stage protocol_rays8192_20250 $P --methods spikelik --seeds 0 --iters 20250 --batch-rays 8192 ;;
         rays32k) stage protocol_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 --batch-rays 32768 ;;
+        fill) # the CPU's rows are put in front so that their runs are skipped, and taken out again after
+              F=$OUT/protocol_fill.jsonl
+              [ -f "$F" ] || cat bench/results/protocol.jsonl "$OUT/protocol_gpu.jsonl" > "$F"
+              OMP_NUM_THREADS=2 stage protocol_fill python3 bench/bench_protocol.py --resolution 400 --device cuda \
+                  --workers "$(nproc)" --jobs "${JOBS:-4}" --sensors "${FILL_SENSORS:-rsir,paper,calibrated}" \
+                  --intensities "${FILL_INTENSITIES:-16,32,64}" --calibrated --results "$F" --out bench_out/protocol \
+                  --methods spikelik,spikenerf-paper,spikenerf,spikenerf-noR,tfp32,tfp256,tfi
+              # the GPU rows: what $F holds past the CPU's lines (the CPU file is not changed by this stage)
+              tail -n +"$(( $(wc -l < bench/results/protocol.jsonl) + 1 ))" "$F" > "$OUT/protocol_gpu.jsonl" ;;
         stop) if [ -d "$DATA" ]; then stage stop_ab bash -c stop_ab
               else echo "stop: no $DATA here (run the spikelik stage first)"; fi ;;
     esac

@@ -6,7 +6,7 @@ from __future__ import annotations
 
 import itertools
 import json
-from collections import defaultdict
+from collections import Counter, defaultdict
 from pathlib import Path
 
 import numpy as np
@@ -136,7 +136,8 @@ def gpu_section(gpu: list, cpu: list) -> list[str]:
             same = f"{c['metrics']['psnr']:.2f} / {c['metrics']['psnr_object']:.2f}, {c['train_seconds']:.0f} s"
             diffs.append(m["psnr_object"] - c["metrics"]["psnr_object"])
             diff = f"{diffs[-1]:+.3f}"
-        out.append(f"| {_run_name(r)} | {r.get('gpu', r['device'])} | {_iters(_budget(r))} | {r['train_seconds']:.0f} | "
+        shared = f" ({r['jobs']} runs at once)" if r.get("jobs", 1) > 1 else ""
+        out.append(f"| {_run_name(r)} | {r.get('gpu', r['device'])} | {_iters(_budget(r))} | {r['train_seconds']:.0f}{shared} | "
                    f"{r['wall_seconds']:.0f} | {m['psnr']:.2f} / {m['psnr_object']:.2f} | {same} | {diff} |")
     out.append("")
     if diffs:
@@ -179,19 +180,26 @@ def table(rows: list, key: str, label: str) -> list[str]:
 
 def section(res: int, data: str, sensor: str, rows: list) -> list[str]:
     lines = [f"### {data}, {sensor} sensor, {res} x {res}", ""]
-    devices = sorted({r["device"] for r in rows})
+    devices = Counter("cuda" if r["device"].startswith("cuda") else r["device"] for r in rows)
     views = sorted({str(r.get("views_from")) for r in rows})
-    lines.append(f"Held-out views: {', '.join(views)}; device: {', '.join(devices)}; runs: {len(rows)}; "
+    lines.append(f"Held-out views: {', '.join(views)}; device: "
+                 f"{', '.join(f'{d} ({n} runs)' if len(devices) > 1 else d for d, n in sorted(devices.items()))}; "
+                 f"runs: {len(rows)}; "
                  f"commits: {', '.join(sorted({r['commit'] for r in rows}))}.")
     for key, label in (("psnr", "PSNR full"), ("psnr_object", "PSNR object"), ("psnr_object50", "PSNR obj50"),
                        ("psnr_background", "PSNR background"), ("ssim", "SSIM full"),
                        ("ssim_object", "SSIM object")):
         lines += [""] + table(rows, key, label)
-    secs = defaultdict(list)
+    secs = defaultdict(lambda: defaultdict(list))  # device, method: the seconds (the devices' apart)
     for r in rows:
-        secs[r["method"]].append(r["train_seconds"])
-    lines += ["", "Train seconds (mean over runs): " + "; ".join(f"{m} {np.mean(v):.0f} s" for m, v in secs.items())
-              + f". Load average during the runs: {_loads(rows)}.", ""]
+        secs["cuda" if r["device"].startswith("cuda") else r["device"]][r["method"]].append(r["train_seconds"])
+    shared = [r for r in rows if r.get("jobs", 1) > 1]
+    lines += ["", " ".join(f"Train seconds{f' on {d}' if len(secs) > 1 else ''} (mean over runs): "
+                           + "; ".join(f"{m} {np.mean(v):.0f} s" for m, v in by.items()) + "."
+                           for d, by in sorted(secs.items()))
+              + f" Load average during the runs: {_loads(rows)}."
+              + (f" {len(shared)} of the runs were trained with `--jobs` (up to {max(r['jobs'] for r in shared)} "
+                 "at once), sharing the machine." if shared else ""), ""]
     return lines
 
 
@@ -349,9 +357,21 @@ def targets(rows: list) -> list[str]:
     return out if len(out) > 2 else []
 
 
+def gpu_fills(gpu: list, cpu: list) -> list:
+    """The GPU's runs that stand in the tables beside the CPU's: those at the default budget for their
+    resolution (iterations, rays a step) whose run (protocol key) the CPU has not made. The two devices
+    give the same run within float noise ("On a GPU"); where both made it, the CPU's row is the one
+    tabled, so no run is counted twice."""
+    have = {row_key(r) for r in cpu}
+    return [r for r in gpu if _budget(r) == (default_iters(r["resolution"], r["resolution"]), DEFAULT_RAYS)
+            and row_key(r) not in have]
+
+
 def main() -> None:
     every = load()
+    gpu = [r for r in load(GPU_RESULTS) if r.get("field", OLD_FIELD) == FIELD]
     rows = [r for r in every if r.get("field", OLD_FIELD) == FIELD]
+    rows += gpu_fills(gpu, rows)
     old = [r for r in every if r.get("field", OLD_FIELD) != FIELD]
     lines = [HEADER.replace("@@ITERS", iterations_note(rows)), "## The paper's numbers (not measured here)", ""]
     lines += paper_rows()
@@ -378,12 +398,13 @@ def main() -> None:
                   "sensor without shot noise) `spikenerf` supervises with the same statistic as the default, so "
                   "the two tie by construction (docs/trainer.md, \"Methods\"): the second target cannot be met "
                   "there against it.", ""]
-    gpu = [r for r in load(GPU_RESULTS) if r.get("field", OLD_FIELD) == FIELD]
     if gpu:
         lines += ["## On a GPU (bench/results/protocol_gpu.jsonl; bench/gpu_session.sh)", "",
-                  "The same protocol (data, settings, held-out views) on a lent GPU machine, kept apart from the "
-                  "tables above, which are the 2-core CPU machine's. Train s is the training loop's own time "
-                  "(loading the data excluded); wall s adds loading and evaluating all held-out views.", ""]
+                  "The same protocol (data, settings, held-out views) on a lent GPU machine. A GPU run at the "
+                  "default budget that the 2-core CPU machine has not made also stands in the tables above "
+                  "(their sections count the runs of each device); one both made is tabled there from the CPU. "
+                  "Train s is the training loop's own time (loading the data excluded); wall s adds loading "
+                  "and evaluating all held-out views.", ""]
         lines += gpu_section(gpu, rows)
     lines += ["## Still missing (current trainer)", ""]
     lines += missing(rows) or ["Nothing: every planned run is in the results file."]

@@ -2,6 +2,7 @@
 targets table computes the margins the issue asks for."""
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -155,3 +156,68 @@ def test_rows_with_other_rays_a_step_are_other_runs():
         line = next(x for x in make_protocol.missing(rows) if "lego, rsir, 400 x 400" in x)
         return int(line.split(": ")[1].split(" of ")[0])
     assert left([wide]) == left([]) == left([base]) + 1
+
+
+def test_jobs_run_the_plan_at_once_and_record_every_run_once(tmp_path, monkeypatch):
+    """``bench_protocol.py --jobs 2``: the runs not yet in the results file are trained two at a time,
+    each finished run appended once with ``jobs``; a run that fails stops new ones from starting, the
+    one under way is still recorded, and the program ends with the failure's line."""
+    import threading
+    import time
+
+    import bench_protocol
+
+    results = tmp_path / "rows.jsonl"
+    already = {"data": "chair", "sensor": "rsir", "intensity": 64, "method": "tfp32", "knowledge": "none",
+               "resolution": 100, "seed": 0, "iterations": 3000, "frames": 0, "field": bench_protocol.FIELD,
+               "batch_rays": bench_protocol.DEFAULT_RAYS}
+    results.write_text(json.dumps(already) + "\n")
+    lock, live, most, fail_on = threading.Lock(), [0], [0], [None]
+
+    def run_one(folder, cell, args):
+        with lock:
+            live[0] += 1
+            most[0] = max(most[0], live[0])
+        time.sleep(0.2)
+        with lock:
+            live[0] -= 1
+        if (cell["method"], cell["seed"]) == fail_on[0]:
+            raise SystemExit(f"failed (1): spikenerf train {folder}")
+        return {**cell, "train_seconds": 1.0, "metrics": {"psnr": 30.0, "psnr_object": 25.0}}
+
+    monkeypatch.setattr(bench_protocol, "run_one", run_one)
+    monkeypatch.setattr(bench_protocol, "dataset", lambda data, sensor, i, args: tmp_path / f"{data}_i{i}")
+    argv = ["bench_protocol.py", "--resolution", "100", "--data", "chair", "--sensors", "rsir", "--intensities", "64",
+            "--methods", "tfp32,tfi", "--seeds", "0,1", "--jobs", "2", "--results", str(results), "--out", str(tmp_path)]
+    monkeypatch.setattr(sys, "argv", argv)
+    bench_protocol.main()
+    rows = [json.loads(x) for x in results.read_text().splitlines()]
+    assert sorted((r["method"], r["seed"]) for r in rows[1:]) == [("tfi", 0), ("tfi", 1), ("tfp32", 1)]
+    assert all(r["jobs"] == 2 for r in rows[1:]) and most[0] == 2  # two at a time, never more
+    bench_protocol.main()  # everything done: nothing more
+    assert len(results.read_text().splitlines()) == 4
+
+    results.write_text(json.dumps(already) + "\n")
+    fail_on[0] = ("tfp32", 1)  # the second of the first pair fails: the first is recorded, no new run starts
+    with pytest.raises(SystemExit, match="failed"):
+        bench_protocol.main()
+    rows = [json.loads(x) for x in results.read_text().splitlines()]
+    assert [(r["method"], r["seed"]) for r in rows[1:]] == [("tfi", 0)]
+
+
+def test_gpu_runs_at_the_default_budget_fill_the_tables_once():
+    """A GPU run at the default budget (9000 iterations at 400 x 400, the default rays a step) that the
+    CPU has not made stands in the tables; one the CPU made is tabled from the CPU; a GPU run at another
+    budget (a convergence or rays-a-step experiment) stays in the GPU section alone."""
+    extra = {"train_seconds": 100.0, "load_average": [1.0, 1.0], "views_from": "val", "commit": "abc"}
+
+    def gpu(method, seed, **kw):
+        return {**_row(method, "true maps", 26.0, seed=seed, iterations=9000), **extra, "device": "cuda", **kw}
+
+    cpu = [{**_row("spikelik", "true maps", 25.0, seed=0, iterations=9000), **extra, "device": "cpu"}]
+    twin, new = gpu("spikelik", 0), gpu("spikelik", 1)
+    longer, wider = gpu("spikelik", 1, iterations=27000), gpu("spikelik", 1, batch_rays=8192)
+    assert make_protocol.gpu_fills([twin, new, longer, wider], cpu) == [new]
+    section = make_protocol.section(400, "lego", "rsir", cpu + [new])
+    assert "device: cpu (1 runs), cuda (1 runs)" in section[2]
+    assert any("Train seconds on cpu" in line and "Train seconds on cuda" in line for line in section)
