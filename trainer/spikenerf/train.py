@@ -243,6 +243,9 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     cfg = dataclasses.replace(cfg, windows=count_windows(ds, method, H, W, cfg.frames, cfg.windows))
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
+    if device.type == "cuda" and cfg.batch_rays == TrainConfig.batch_rays:
+        log(f"on a GPU a step of many more rays costs about what one of {cfg.batch_rays} does: --batch-rays 32768 "
+            "trains faster (docs/trainer.md, \"Measured on a GPU, third lease\")")
     space = None  # the world cube (an object on white, --space cube, or views that do not all face one way)
     if cfg.space not in SPACES:
         raise InputError(f"unknown space {cfg.space!r}; one of {', '.join(SPACES)}")
