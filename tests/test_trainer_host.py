@@ -40,3 +40,22 @@ def test_a_training_step_reads_few_values_and_uploads_nothing(dataset, tmp_path,
     # sampling: one read of the rays' extent, one or three for the packed samples, one for early
     # termination; the loss check (one on the CPU); the occupancy's update every 10 steps here
     assert 2 <= reads <= 7, counts[1].reads
+
+
+def test_the_profiler_refuses_what_it_cannot_profile(tmp_path):
+    """bench_trainer_profile.py: a folder that is not a trained run, a GPU where there is none, too few
+    steps: one line, exit 2, no traceback."""
+    import subprocess
+
+    script = Path(__file__).resolve().parents[1] / "bench" / "bench_trainer_profile.py"
+    (tmp_path / "half").mkdir()
+    (tmp_path / "half" / "config.json").write_text("{}")
+    shutil.copytree(tmp_path / "half", tmp_path / "whole")
+    (tmp_path / "whole" / "checkpoint.pt").write_bytes(b"")  # (the checks below come before it is read)
+    cases = [([str(tmp_path / "nothing")], "is not a trained run"), ([str(tmp_path / "half")], "no checkpoint.pt"),
+             ([str(tmp_path / "whole"), "--steps", "1"], "--steps must be at least 2")]
+    if not torch.cuda.is_available():
+        cases.append(([str(tmp_path / "whole"), "--device", "cuda"], "has no CUDA GPU"))
+    for args, want in cases:
+        r = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True)
+        assert r.returncode == 2 and want in r.stderr and "Traceback" not in r.stderr, r.stderr
