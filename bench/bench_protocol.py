@@ -30,6 +30,7 @@ import argparse
 import datetime
 import itertools
 import json
+import math
 import os
 import subprocess
 import sys
@@ -238,6 +239,9 @@ def main() -> None:
     ap.add_argument("--jobs", type=int, default=1, help="runs trained at once, each its own process (a GPU step is "
                     "bound by the host: several runs share one GPU well); rows made with more than one say so "
                     "(jobs), their seconds are those of a shared machine")
+    ap.add_argument("--start-within", type=float, default=0.0, help="seconds from now after which no run starts "
+                    "(those left are said and left for a later call; 0 = no limit): a run cut by a time budget "
+                    "on a lent machine is lost with it")
     ap.add_argument("--workers", type=int, default=1, help="local processes that make a dataset (spikegen --workers; "
                     "every view carries its own seed, so the bytes do not depend on it)")
     ap.add_argument("--out", type=Path, default=REPO / "bench_out" / "protocol")
@@ -249,8 +253,9 @@ def main() -> None:
     unknown = [m for m in args.methods if m not in KNOWLEDGE]
     if unknown or ("lego" in args.data and not LEGO.is_dir()):
         sys.exit(f"unknown methods {unknown}" if unknown else f"{LEGO} not found: the real lego is needed")
-    if args.jobs < 1:
-        sys.exit("--jobs must be at least 1")
+    if args.jobs < 1 or args.start_within < 0:
+        sys.exit("--jobs must be at least 1 and --start-within at least 0")
+    args.deadline = time.monotonic() + args.start_within if args.start_within else math.inf
     done = done_keys(args.results)
     models = {s: sensor_model(s) for s in args.sensors}
     args.results.parent.mkdir(parents=True, exist_ok=True)
@@ -259,12 +264,19 @@ def main() -> None:
         cell["sensor_model"] = models[sensor]
         if row_key(cell) in done:
             continue
-        if args.jobs == 1:
+        todo.append((data, sensor, i, cell))
+    if args.jobs == 1:
+        for k, (data, sensor, i, cell) in enumerate(todo):
+            if time.monotonic() > args.deadline:
+                _left(len(todo) - k)
+                break
             _record(run_one(dataset(data, sensor, i, args), cell, args), args)
-        else:
-            todo.append((data, sensor, i, cell))
-    if todo:
+    elif todo:
         run_parallel(todo, args)
+
+
+def _left(n: int) -> None:
+    print(f"--start-within passed: {n} run{'s' if n != 1 else ''} not started, left for a later call", flush=True)
 
 
 def _record(row: dict, args) -> None:
@@ -289,6 +301,9 @@ def run_parallel(todo: list, args) -> None:
     with ThreadPoolExecutor(args.jobs) as pool:
         running = set()
         while queue or running:
+            if queue and time.monotonic() > args.deadline:
+                _left(len(queue))
+                queue = []
             while queue and failure is None and len(running) < args.jobs:
                 data, sensor, i, cell = queue.pop(0)
                 try:

@@ -24,9 +24,10 @@
 #              share the GPU well): sensors FILL_SENSORS (default rsir,paper,calibrated), intensities
 #              FILL_INTENSITIES (default 16,32,64), every spike method and seed, with --calibrated; a
 #              dataset is made when its first run is due, where the machine has none (about 70 s each
-#              with 16 workers). Runs already in
-#              bench/results/protocol.jsonl (the CPU's) are skipped too: OUT/protocol_gpu.jsonl starts with
-#              them and they are dropped from it at the end
+#              with 16 workers); no run starts in the budget's last LAST_START seconds (default 240).
+#              Runs already in bench/results/protocol.jsonl (the CPU's) are skipped too: the stage's
+#              results file (OUT/protocol_fill.jsonl) starts with the CPU's rows and then the GPU's, and
+#              what follows the CPU's rows is copied back to OUT/protocol_gpu.jsonl at the end
 #   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
 #              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
 #              whether its fewer steps make it faster on the GPU)
@@ -108,7 +109,10 @@ for st in $STAGES; do
         fill) # the CPU's rows are put in front so that their runs are skipped, and taken out again after
               F=$OUT/protocol_fill.jsonl
               [ -f "$F" ] || cat bench/results/protocol.jsonl "$OUT/protocol_gpu.jsonl" > "$F"
+              # no run starts in the last LAST_START seconds of the budget (default 240: about one run's time
+              # with JOBS sharing the GPU), so that runs are not cut by it
               OMP_NUM_THREADS=2 stage protocol_fill python3 bench/bench_protocol.py --resolution 400 --device cuda \
+                  --start-within "$(( $(left) > ${LAST_START:-240} ? $(left) - ${LAST_START:-240} : 1 ))" \
                   --workers "$(nproc)" --jobs "${JOBS:-4}" --sensors "${FILL_SENSORS:-rsir,paper,calibrated}" \
                   --intensities "${FILL_INTENSITIES:-16,32,64}" --calibrated --results "$F" --out bench_out/protocol \
                   --methods spikelik,spikenerf-paper,spikenerf,spikenerf-noR,tfp32,tfp256,tfi

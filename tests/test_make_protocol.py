@@ -221,3 +221,27 @@ def test_gpu_runs_at_the_default_budget_fill_the_tables_once():
     section = make_protocol.section(400, "lego", "rsir", cpu + [new])
     assert "device: cpu (1 runs), cuda (1 runs)" in section[2]
     assert any("Train seconds on cpu" in line and "Train seconds on cuda" in line for line in section)
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_no_run_starts_after_start_within(tmp_path, monkeypatch, capsys, jobs):
+    """``--start-within S``: runs already started finish and are recorded; none starts after S seconds,
+    and how many were left is said."""
+    import time
+
+    import bench_protocol
+
+    def run_one(folder, cell, args):
+        time.sleep(0.3)
+        return {**cell, "train_seconds": 1.0, "metrics": {"psnr": 30.0, "psnr_object": 25.0}}
+
+    monkeypatch.setattr(bench_protocol, "run_one", run_one)
+    monkeypatch.setattr(bench_protocol, "dataset", lambda data, sensor, i, args: tmp_path / f"{data}_i{i}")
+    results = tmp_path / "rows.jsonl"
+    monkeypatch.setattr(sys, "argv", ["bench_protocol.py", "--resolution", "100", "--data", "chair", "--sensors", "rsir",
+                                      "--intensities", "64", "--methods", "tfp32,tfi", "--seeds", "0,1,2",
+                                      "--jobs", str(jobs), "--start-within", "0.1", "--results", str(results),
+                                      "--out", str(tmp_path)])
+    bench_protocol.main()
+    assert len(results.read_text().splitlines()) == jobs  # the first run (or pair) only
+    assert f"{6 - jobs} runs not started" in capsys.readouterr().out
