@@ -18,8 +18,9 @@ skipped, so a long table is completed over several sessions; work folders live i
 run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
 resumed from; its wall_seconds are this session's only; train_seconds add up over sessions).
 ``--jobs N`` trains N runs at once (on a GPU, whose step is bound by the host, several runs share it
-well); their rows say ``jobs``. ``--calibrated`` adds, for every method that uses the sensor's maps, a run with the maps of
-``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
+well); their rows say ``jobs``. ``--start-within S``: no run starts after S seconds (for a machine lent
+for a fixed time). ``--calibrated`` adds, for every method that uses the sensor's maps, a run with the
+maps of ``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
 real camera has) instead of the dataset's true maps. No setting is chosen here: every method runs
 with the trainer's defaults. ``oracle`` (not a spike method; it knows the ground-truth images of the
 train views) is the same field fitted to those images: what the field can represent.
