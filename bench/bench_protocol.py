@@ -17,8 +17,8 @@ seconds, the load average) and every metric (means and per view). A run already 
 skipped, so a long table is completed over several sessions; work folders live in ``--out``, and a
 run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
 resumed from; its wall_seconds are this session's only; train_seconds add up over sessions).
-``--jobs N`` trains N runs at once (on a GPU, whose step is bound by the host, several runs share it
-well); their rows say ``jobs``. ``--start-within S``: no run starts after S seconds (for a machine lent
+``--jobs N`` trains N runs at once (a GPU is busy about a third of a training step, the rest is the
+host's: docs/trainer.md, so several runs can use one; untried there yet); their rows say ``jobs``. ``--start-within S``: no run starts after S seconds (for a machine lent
 for a fixed time). ``--calibrated`` adds, for every method that uses the sensor's maps, a run with the
 maps of ``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
 real camera has) instead of the dataset's true maps. No setting is chosen here: every method runs
@@ -237,8 +237,8 @@ def main() -> None:
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
     ap.add_argument("--device", default="auto")
-    ap.add_argument("--jobs", type=int, default=1, help="runs trained at once, each its own process (a GPU step is "
-                    "bound by the host: several runs share one GPU well); rows made with more than one say so "
+    ap.add_argument("--jobs", type=int, default=1, help="runs trained at once, each its own process (a GPU is busy "
+                    "about a third of a training step: several runs can use one); rows made with more than one say so "
                     "(jobs), their seconds are those of a shared machine")
     ap.add_argument("--start-within", type=float, default=0.0, help="seconds from now after which no run starts "
                     "(those left are said and left for a later call; 0 = no limit): a run cut by a time budget "
