@@ -20,14 +20,15 @@
 #              chosen on the procedural lego, docs/trainer.md "Rays a step")
 #   rays3      the same with 20250 iterations (converged at 6750 if within 0.3 dB)
 #   fill       the 400 x 400 protocol's missing runs at the default budget (bench/make_protocol.py "Still
-#              missing"), JOBS (default 4) at once on the one GPU (a step keeps it busy about a third
-#              of the time, docs/trainer.md; how well runs share it is not yet measured): sensors FILL_SENSORS (default rsir,paper,calibrated), intensities
-#              FILL_INTENSITIES (default 16,32,64), every spike method and seed, with --calibrated; a
-#              dataset is made when its first run is due, where the machine has none (about 70 s each
-#              with 16 workers); no run starts in the budget's last LAST_START seconds (default 240).
-#              Runs already in bench/results/protocol.jsonl (the CPU's) are skipped too: the stage's
-#              results file (OUT/protocol_fill.jsonl) starts with the CPU's rows and then the GPU's, and
-#              what follows the CPU's rows is copied back to OUT/protocol_gpu.jsonl at the end
+#              missing"), JOBS (default 4) at once on the one GPU (a step keeps it busy about a third of
+#              the time, docs/trainer.md; how well runs share it is not yet measured): sensors
+#              FILL_SENSORS (default rsir,paper,calibrated), intensities FILL_INTENSITIES (default
+#              16,32,64), every spike method and seed, with --calibrated; a dataset is made when its
+#              first run is due, where the machine has none (about 70 s each with 16 workers); no run
+#              starts in the budget's last LAST_START seconds (default 240). Runs already in
+#              bench/results/protocol.jsonl (the CPU's) are skipped too: the stage's results file
+#              (OUT/protocol_fill.jsonl) starts with the CPU's rows and then the GPU's, and what
+#              follows the CPU's rows is copied back to OUT/protocol_gpu.jsonl at the end
 #   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
 #              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
 #              whether its fewer steps make it faster on the GPU)
