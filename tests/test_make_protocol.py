@@ -95,8 +95,8 @@ def test_scenes_table_puts_the_procedural_scenes_side_by_side():
     assert tfp == ["tfp32", "none", "20.00 / 18.00 (1)", "–", "–"]
     assert lik and not any("99.00" in x for x in table)
     gone = [x for x in make_protocol.missing(rows) if ", rsir, 100 x 100" in x and not x.startswith("- lego")]
-    assert any(x.startswith("- chair") and "5 of 9 runs (i64, method x seed)" in x for x in gone)
-    assert any(x.startswith("- ficus") and "9 of 9 runs" in x for x in gone)
+    assert any(x.startswith("- chair") and "17 of 21 runs (i64, method x seed)" in x for x in gone)
+    assert any(x.startswith("- ficus") and "21 of 21 runs" in x for x in gone)
 
 
 def test_rows_of_different_calibrated_presets_are_different_runs():
