@@ -266,22 +266,14 @@ def main() -> None:
         if row_key(cell) in done:
             continue
         todo.append((data, sensor, i, cell))
-    if args.jobs == 1:
-        for k, (data, sensor, i, cell) in enumerate(todo):
-            if time.monotonic() > args.deadline:
-                _left(len(todo) - k)
-                break
-            _record(run_one(dataset(data, sensor, i, args), cell, args), args)
-    elif todo:
-        run_parallel(todo, args)
-
-
-def _left(n: int) -> None:
-    print(f"--start-within passed: {n} run{'s' if n != 1 else ''} not started, left for a later call", flush=True)
+    run_plan(todo, args)
 
 
 def _record(row: dict, args) -> None:
-    """Append a finished run's row to the results file and say what it scored."""
+    """Append a finished run's row to the results file and say what it scored; a row made with
+    ``--jobs`` above 1 says so (``jobs``)."""
+    if args.jobs > 1:
+        row = {**row, "jobs": args.jobs}
     with args.results.open("a") as fh:
         fh.write(json.dumps(row) + "\n")
     print(f"  {row['data']} {row['sensor']} i{row['intensity']} {row['method']} seed {row['seed']}: PSNR "
@@ -289,8 +281,8 @@ def _record(row: dict, args) -> None:
           f"{row['train_seconds']:.0f} s", flush=True)
 
 
-def run_parallel(todo: list, args) -> None:
-    """``--jobs N``: the runs, N at once, each row appended by this process as its run finishes. A run's
+def run_plan(todo: list, args) -> None:
+    """The runs, ``--jobs`` at once, each row appended by this process as its run finishes. A run's
     dataset (and calibration) is made by this process, one at a time, when the first run that needs it
     is about to start (while the runs already started go on). A run that fails stops new ones from
     starting; those under way finish and are recorded, then the failure's message ends the program."""
@@ -303,7 +295,8 @@ def run_parallel(todo: list, args) -> None:
         running = set()
         while queue or running:
             if queue and time.monotonic() > args.deadline:
-                _left(len(queue))
+                print(f"--start-within passed: {len(queue)} run{'s' if len(queue) != 1 else ''} not started, "
+                      "left for a later call", flush=True)
                 queue = []
             while queue and failure is None and len(running) < args.jobs:
                 data, sensor, i, cell = queue.pop(0)
@@ -321,7 +314,7 @@ def run_parallel(todo: list, args) -> None:
             finished, running = wait(running, return_when=FIRST_COMPLETED)
             for fut in finished:
                 try:
-                    _record({**fut.result(), "jobs": args.jobs}, args)
+                    _record(fut.result(), args)
                 except SystemExit as e:  # _run's one line
                     failure = failure or e
     if failure is not None:

@@ -144,10 +144,12 @@ def main() -> None:
     keys = {f.name for f in dataclasses.fields(TrainConfig)}
     # the settings the checkpoint was trained with win over config.json's; a run from before early ray
     # termination trained without it (the trainer's own reading of such a checkpoint)
-    made = {"stop_transmittance": 0.0, **_checkpoint(args.run)["config"]}
+    ck = _checkpoint(args.run)
+    made = {"stop_transmittance": 0.0, **ck["config"]}
     cfg = TrainConfig(**{k: v for k, v in {**saved, **made}.items() if k in keys})
     cfg = dataclasses.replace(cfg, device=args.device, checkpoint_every_s=1e9, checkpoint_every=10 ** 9)
-    done = int(_checkpoint(args.run)["iteration"])
+    done = int(ck["iteration"])
+    del ck
     half = max(args.steps // 2, 1)
     print(f"{args.run} ({cfg.method}, {saved['width']} x {saved['height']}, trained {done} iterations); device "
           f"{args.device}" + (f" ({torch.cuda.get_device_name()})" if args.device == "cuda" else "") +

@@ -178,9 +178,14 @@ def table(rows: list, key: str, label: str) -> list[str]:
     return out
 
 
+def _device(r: dict) -> str:
+    """The row's device kind: ``cuda`` for any CUDA device (``cuda:0`` ...), else as recorded."""
+    return "cuda" if r["device"].startswith("cuda") else r["device"]
+
+
 def section(res: int, data: str, sensor: str, rows: list) -> list[str]:
     lines = [f"### {data}, {sensor} sensor, {res} x {res}", ""]
-    devices = Counter("cuda" if r["device"].startswith("cuda") else r["device"] for r in rows)
+    devices = Counter(_device(r) for r in rows)
     views = sorted({str(r.get("views_from")) for r in rows})
     lines.append(f"Held-out views: {', '.join(views)}; device: "
                  f"{', '.join(f'{d} ({n} runs)' if len(devices) > 1 else d for d, n in sorted(devices.items()))}; "
@@ -192,7 +197,7 @@ def section(res: int, data: str, sensor: str, rows: list) -> list[str]:
         lines += [""] + table(rows, key, label)
     secs = defaultdict(lambda: defaultdict(list))  # device, method: the seconds (the devices' apart)
     for r in rows:
-        secs["cuda" if r["device"].startswith("cuda") else r["device"]][r["method"]].append(r["train_seconds"])
+        secs[_device(r)][r["method"]].append(r["train_seconds"])
     shared = [r for r in rows if r.get("jobs", 1) > 1]
     lines += ["", " ".join(f"Train seconds{f' on {d}' if len(secs) > 1 else ''} (mean over runs): "
                            + "; ".join(f"{m} {np.mean(v):.0f} s" for m, v in by.items()) + "."
@@ -337,12 +342,10 @@ def targets(rows: list) -> list[str]:
             base = [(b, *_mean(rs, b, KNOWLEDGE[b], i)) for b in BASELINES]
             base = [x for x in base if x[1] is not None]
             c, nc = _mean(rs, "spikelik", "calibrated maps", i)
-            o, no = _mean(rs, "oracle", "ground-truth images", i)
-            o_from = None
-            if o is None:  # the oracle reads no spikes: its runs at another intensity are the same runs
-                o_from = next((j for j in INTENSITIES if _mean(rs, "oracle", "ground-truth images", j)[0] is not None),
-                              None)
-                o = None if o_from is None else _mean(rs, "oracle", "ground-truth images", o_from)[0]
+            # the oracle reads no spikes: its runs at another intensity are the same runs
+            oracle = {j: _mean(rs, "oracle", "ground-truth images", j)[0] for j in INTENSITIES}
+            o_from = None if oracle[i] is not None else next((j for j in INTENSITIES if oracle[j] is not None), None)
+            o = oracle[i] if o_from is None else oracle[o_from]
             paper = _verdict(None if p is None else d - p, p is not None and d - p >= 3.0, min(nd, n_p))
             if base:
                 name, b, nb = max(base, key=lambda x: x[1])

@@ -497,6 +497,13 @@ REAL_RECORDINGS = (("car_100kmh_250x400.dat", (400, 250)), ("car_500frames_250x4
                    ("uhsr_lowlight_250x250.npz", None))
 
 
+def _z(better, worse) -> float:
+    """The summed per-pixel difference of two held-out scores over its standard error
+    (HeldOutScore.improvement); 0 where the two do not differ."""
+    g, se = better.improvement(worse)
+    return g / se if se > 0 else 0.0
+
+
 def study_heldout(real, md, results):
     """`spikegen diagnose --reference self` on every real recording: the held-out score of the
     ideal and the fitted sensor, what was kept, and what stays unexplained; and the held-out gain of
@@ -513,10 +520,9 @@ def study_heldout(real, md, results):
         kept = ", ".join(f"{n} ({h['effects'][n]['gain_nats']:.3g} nats)" for n in d.detected) or "none"
         noise = score_sensor(spikes, "self", 256.0, preset_sensor(results, "shot"))
         ideal = score_sensor(spikes, "self", 256.0, Sensor(name="shot"))
-        gain, se = noise.improvement(ideal)
+        results.setdefault("heldout_scores", {})[name] = (noise, ideal)  # (study_joint reuses them)
         per_px = noise.mean - ideal.mean  # nats per judged pixel
-        z = gain / se if se > 0 else 0.0
-        results.setdefault("preset_heldout", {})[name] = {"nats_per_pixel": per_px, "z": z}
+        z = _z(noise, ideal)
         rows.append((name, f"{d.info['static_pixels']} / {d.info['moving_pixels']} / {d.info['untested_pixels']}",
                      f"{h['ideal']:.4g}",
                      f"{h['fitted']:.4g}", kept, ", ".join(u["statistic"] for u in d.unexplained) or "none",
@@ -565,18 +571,15 @@ def study_joint(real, md, results):
            for label, _, key in JOINT_RECORDINGS}
     preset = results["electrons"]
     grid = sorted(set(JOINT_GRID) | set(own.values()) | {preset})
-    graded = {label: {e: score_sensor(s, "self", 256.0, Sensor(name="shot", electrons=0.0 if math.isinf(e) else e))
-                      for e in grid} for label, s in data.items()}
+    # the fitted noise's and the ideal sensor's (N_e = inf) scores: those study_heldout made of the same recordings
+    made = {label: results["heldout_scores"][name] for label, name, _ in JOINT_RECORDINGS}
+    graded = {label: {e: made[label][1] if math.isinf(e) else
+                      score_sensor(s, "self", 256.0, Sensor(name="shot", electrons=e)) for e in grid}
+              for label, s in data.items()}
     scores = {label: {e: sc.mean for e, sc in by_e.items()} for label, by_e in graded.items()}
     shared = max(grid, key=lambda e: sum(scores[label][e] for label in data))
-    fitted_scores = {label: score_sensor(s, "self", 256.0, preset_sensor(results, "shot")) for label, s in data.items()}
-    fitted = {label: sc.mean for label, sc in fitted_scores.items()}
-    # the preset against the ideal sensor (the grid's N_e = inf): z of the summed per-pixel
-    # differences (HeldOutScore.improvement)
-    fitted_z = {}
-    for label in data:
-        g, se = fitted_scores[label].improvement(graded[label][math.inf])
-        fitted_z[label] = g / se if se > 0 else 0.0
+    fitted = {label: made[label][0].mean for label in data}
+    fitted_z = {label: _z(*made[label]) for label in data}  # the fitted noise against the ideal sensor
     car, low = (label for label, _, _ in JOINT_RECORDINGS)
     rows = []
     for label, other in ((car, low), (low, car)):
