@@ -23,6 +23,7 @@ Usage::
     python bench/bench_trainer_step.py --run RUN [--run RUN2]  # only the trained fields' table (below)
     python bench/bench_trainer_step.py --run RUN --step        # whole training steps, now against before
     python bench/bench_trainer_step.py --run RUN --stop        # early ray termination against none
+    python bench/bench_trainer_step.py --run RUN --origins     # contiguous ray origins against strided
 
 4. ``--run RUN``: a trained run's field (its checkpoint): a training step's rendering and a held-out
    view, samples made in one pass against empty blocks skipped first (``render._skip_blocks``).
@@ -33,6 +34,10 @@ Usage::
    that their ray reaches with transmittance below 1e-2, 1e-3 and 1e-4; whole training steps with the
    trainer's ``--stop-transmittance`` against 0 (two copies of the field, the same rays, interleaved);
    a held-out view's rendering is not changed by it (no gradients: every occupied sample is read).
+7. ``--run RUN --origins``: whole training steps and held-out views with the rays' origins as
+   ``render.pixel_rays`` gives them since 2026-11-26 (a contiguous copy) against its way before (a
+   strided view of the poses: stride 0 over a view's rays, where one pose is expanded), interleaved
+   on two copies of the field; the steps' grids and the views checked equal to the bit.
 """
 from __future__ import annotations
 
@@ -365,6 +370,64 @@ def termination_table(run: str, reps: int) -> None:
           f"{os.getloadavg()[0]:.2f} at end")
 
 
+def origins_table(run: str, reps: int) -> None:
+    """Contiguous ray origins (``render.pixel_rays`` now) against the strided view of the poses it
+    returned before 2026-11-26: whole training steps (two copies of the field, the same rays) and a
+    held-out view, interleaved; CPU seconds of this process, medians. The samples gather each one's
+    ray origin (``index_select``), which PyTorch's CPU kernel does many times slower from a strided
+    tensor."""
+    import os
+
+    from spikenerf import train as T
+
+    ck, cfg, ds, (H, W), method, batch, (focal, bg) = _training_setup(run)
+    rays = R.pixel_rays
+
+    def strided(poses, *a, **k):  # the way before: the origins a view of the poses
+        return poses[:, :3, 3], rays(poses, *a, **k)[1]
+
+    ways = {"strided": strided, "contiguous": rays}
+    fields = {w: T.field_from_checkpoint(ck, "cpu") for w in ways}
+    opts = {w: T.make_optimizer(f, cfg) for w, f in fields.items()}
+    held = ds.splits.get("test") or ds.splits.get("val") or ds.splits["train"]
+    print(f"\n{run}: ray origins; grid {fields['contiguous'].dims}, {H} x {W}; torch threads "
+          f"{torch.get_num_threads()}; load average {os.getloadavg()[0]:.2f} at start")
+    times = {w: ([], []) for w in ways}
+    views = {}
+    try:
+        for r in range(reps + 2):
+            pose = torch.as_tensor(held[r % len(held)].pose, dtype=torch.float32)
+            for w in ("strided", "contiguous") if r % 2 else ("contiguous", "strided"):
+                R.pixel_rays = ways[w]
+                field, opt = fields[w], opts[w]
+                c0 = time.process_time()
+                gen = T.iteration_generator(cfg.seed, 100 + r)
+                img, pix, jitter = batch.draw(cfg.batch_rays, gen)
+                o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
+                x, _ = R.render_rays(field, o, d, jitter, bg, stop=cfg.stop_transmittance)
+                loss = T.method_loss(method, x, img, pix, batch, ds.intensity)[0] + cfg.tv_weight * field.tv_loss(gen)
+                opt.zero_grad(set_to_none=False)
+                loss.backward()
+                opt.step()
+                c1 = time.process_time()
+                with torch.no_grad():
+                    views[w] = R.render_image(field, pose, H, W, focal, background=bg, far=6.0)
+                c2 = time.process_time()
+                if r >= 2:  # one warm-up step and view each, twice
+                    times[w][0].append(c1 - c0)
+                    times[w][1].append(c2 - c1)
+            assert all(torch.equal(a, b) for a, b in zip(views["strided"], views["contiguous"])), "the views differ"
+    finally:
+        R.pixel_rays = rays
+    same = all(torch.equal(a, b) for a, b in zip(fields["strided"].grids(), fields["contiguous"].grids()))
+    assert same, "the grids differ"
+    for k, label in ((0, "training step"), (1, "one held-out view")):
+        a, b = (1000 * statistics.median(times[w][k]) for w in ("strided", "contiguous"))
+        print(f"{label:>36}: strided {a:8.1f} ms, contiguous {b:8.1f} ms; ratio {a / b:.2f} (CPU time, median of {reps})")
+    print(f"{'':>36}  grids after {reps + 2} steps and every view equal to the bit; load average "
+          f"{os.getloadavg()[0]:.2f} at end")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--reps", type=int, default=7)
@@ -372,10 +435,12 @@ def main() -> None:
     ap.add_argument("--run", action="append", default=[], help="also time a trained run's field (its folder)")
     ap.add_argument("--step", action="store_true", help="with --run: whole training steps, now against before")
     ap.add_argument("--stop", action="store_true", help="with --run: early ray termination against none")
+    ap.add_argument("--origins", action="store_true", help="with --run: contiguous ray origins against strided")
     args = ap.parse_args()
     if args.run:
         for run in args.run:
-            table = termination_table if args.stop else training_step_table if args.step else trained_table
+            table = (origins_table if args.origins else termination_table if args.stop else
+                     training_step_table if args.step else trained_table)
             table(run, args.reps)
         if args.only is None:
             return

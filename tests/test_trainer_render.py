@@ -26,6 +26,20 @@ def test_centre_pixel_looks_down_minus_z():
     assert torch.allclose(d, torch.tensor([[0.025, -0.025, -1.0]]) / math.sqrt(1 + 2 * 0.025 ** 2))
 
 
+def test_ray_origins_are_their_own_contiguous_copy():
+    """The renderer gathers each sample's ray origin; from a strided view of the poses (one pose
+    expanded over a view, or a batch of poses) PyTorch's CPU gather is many times slower
+    (bench/bench_trainer_step.py --origins), so the origins come back contiguous, values unchanged."""
+    pose = _look_from_z()
+    for poses in (pose[None].expand(6, 4, 4), torch.stack([pose, pose + 0.5, pose - 1.0])):
+        n = poses.shape[0]
+        o, d = pixel_rays(poses, torch.arange(n), 10, 10, 20.0)
+        assert o.is_contiguous() and d.is_contiguous()
+        assert torch.equal(o, poses[:, :3, 3])
+        o[0, 0] = 7.0  # a copy: the poses are not written through it
+        assert poses[0, 0, 3] != 7.0
+
+
 def test_box_interval_hit_and_miss():
     o = torch.tensor([[0.0, 0.0, 4.0], [5.0, 5.0, 4.0]])
     d = torch.tensor([[0.0, 0.0, -1.0], [0.0, 0.0, -1.0]])

@@ -56,7 +56,10 @@ def pixel_rays(poses: torch.Tensor, pix: torch.Tensor, height: int, width: int, 
         x, y = x * s, y * s
     d_cam = torch.stack([x, -y, -torch.ones_like(col)], dim=-1)
     d = torch.einsum("nij,nj->ni", poses[:, :3, :3], d_cam)
-    return poses[:, :3, 3], d / d.norm(dim=-1, keepdim=True)
+    # the origins as a contiguous copy: a column of ``poses`` (strided, or stride 0 where one pose is
+    # expanded over a view) is gathered per sample (``index_select``) many times slower on the CPU
+    # (docs/trainer.md, "Contiguous ray origins")
+    return poses[:, :3, 3].contiguous(), d / d.norm(dim=-1, keepdim=True)
 
 
 def box_interval(origins: torch.Tensor, dirs: torch.Tensor, box: torch.Tensor, near: float = NEAR_T):
