@@ -261,6 +261,24 @@ def _training_setup(run: str):
     return ck, cfg, ds, (H, W), method, batch, (ds.camera(H, W), ds.background)
 
 
+def _train_step(setup, field, opt, it: int, stop: float, set_to_none: bool = False) -> torch.Tensor:
+    """One whole training step of ``field`` with its optimiser ``opt`` (the trainer's loop body: the
+    iteration's rays, render with early ray termination ``stop``, loss, prior, zero_grad, backward,
+    Adam), from :func:`_training_setup`'s ``setup``; the rays' luminance."""
+    from spikenerf import train as T
+
+    ck, cfg, ds, (H, W), method, batch, (focal, bg) = setup
+    gen = T.iteration_generator(cfg.seed, it)
+    img, pix, jitter = batch.draw(cfg.batch_rays, gen)
+    o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
+    x, _ = R.render_rays(field, o, d, jitter, bg, stop=stop)
+    loss = T.method_loss(method, x, img, pix, batch, ds.intensity)[0] + cfg.tv_weight * field.tv_loss(gen)
+    opt.zero_grad(set_to_none=set_to_none)
+    loss.backward()
+    opt.step()
+    return x.detach()
+
+
 def training_step_table(run: str, reps: int) -> None:
     """A trained run's field: whole training steps (its rays, render, loss, prior, zero_grad, backward,
     Adam) the trainer's way now -- corner reads adding into the kept ``grid.grad`` -- and the way it
@@ -273,8 +291,10 @@ def training_step_table(run: str, reps: int) -> None:
     import os
 
     from spikenerf import train as T
+    from spikenerf.config import STOP_TRANSMITTANCE  # (render_rays' default)
 
-    ck, cfg, ds, (H, W), method, batch, (focal, bg) = _training_setup(run)
+    setup = _training_setup(run)
+    ck, cfg, (H, W) = setup[0], setup[1], setup[3]
     fields = {way: T.field_from_checkpoint(ck, "cpu") for way in ("now", "before")}
     opts = {way: T.make_optimizer(f, cfg) for way, f in fields.items()}
     before = fields["before"]
@@ -282,16 +302,8 @@ def training_step_table(run: str, reps: int) -> None:
     block_read = M._BlockRead.apply
 
     def step(way: str, it: int) -> None:
-        field, opt = fields[way], opts[way]
         M._BlockRead.apply = block_read if way == "now" else (lambda g, box: g[(slice(None), slice(None)) + tuple(box)])
-        gen = T.iteration_generator(cfg.seed, it)
-        img, pix, jitter = batch.draw(cfg.batch_rays, gen)
-        o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
-        x, _ = R.render_rays(field, o, d, jitter, bg)
-        loss = T.method_loss(method, x, img, pix, batch, ds.intensity)[0] + cfg.tv_weight * field.tv_loss(gen)
-        opt.zero_grad(set_to_none=way == "before")
-        loss.backward()
-        opt.step()
+        _train_step(setup, fields[way], opts[way], it, STOP_TRANSMITTANCE, set_to_none=way == "before")
 
     times = {way: ([], []) for way in fields}
     print(f"\n{run}: whole training steps, grid {fields['now'].dims}, {H} x {W}; torch threads "
@@ -322,7 +334,8 @@ def termination_table(run: str, reps: int) -> None:
     from spikenerf import train as T
     from spikenerf.config import STOP_TRANSMITTANCE as stop
 
-    ck, cfg, ds, (H, W), method, batch, (focal, bg) = _training_setup(run)
+    setup = _training_setup(run)
+    ck, cfg, _, (H, W), _, batch, (focal, _) = setup
     fields = {s: T.field_from_checkpoint(ck, "cpu") for s in (0.0, stop)}
     opts = {s: T.make_optimizer(f, cfg) for s, f in fields.items()}
     field = fields[0.0]
@@ -342,23 +355,12 @@ def termination_table(run: str, reps: int) -> None:
     print(f"{'occupied samples a ray':>36}: {total / (10 * cfg.batch_rays):.1f}; behind transmittance " +
           ", ".join(f"{t:g}: {100 * v / total:.1f} %" for t, v in behind.items()) + " (10 batches)")
 
-    def train_step(s: float, it: int) -> torch.Tensor:  # the rays' luminance
-        gen = T.iteration_generator(cfg.seed, it)
-        img, pix, jitter = batch.draw(cfg.batch_rays, gen)
-        o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
-        x, _ = R.render_rays(fields[s], o, d, jitter, bg, stop=s)
-        loss = T.method_loss(method, x, img, pix, batch, ds.intensity)[0] + cfg.tv_weight * fields[s].tv_loss(gen)
-        opts[s].zero_grad(set_to_none=False)
-        loss.backward()
-        opts[s].step()
-        return x.detach()
-
     times = {s: [] for s in fields}
     outs = {}
     for r in range(reps + 2):
         for s in (0.0, stop) if r % 2 else (stop, 0.0):
             c0 = time.process_time()
-            outs[s] = train_step(s, 100 + r)
+            outs[s] = _train_step(setup, fields[s], opts[s], 100 + r, s)
             if r >= 2:  # two warm-up steps each
                 times[s].append(time.process_time() - c0)
         if r == 0:
@@ -380,7 +382,8 @@ def origins_table(run: str, reps: int) -> None:
 
     from spikenerf import train as T
 
-    ck, cfg, ds, (H, W), method, batch, (focal, bg) = _training_setup(run)
+    setup = _training_setup(run)
+    ck, cfg, ds, (H, W), _, _, (focal, bg) = setup
     rays = R.pixel_rays
 
     def strided(poses, *a, **k):  # the way before: the origins a view of the poses
@@ -399,19 +402,11 @@ def origins_table(run: str, reps: int) -> None:
             pose = torch.as_tensor(held[r % len(held)].pose, dtype=torch.float32)
             for w in ("strided", "contiguous") if r % 2 else ("contiguous", "strided"):
                 R.pixel_rays = ways[w]
-                field, opt = fields[w], opts[w]
                 c0 = time.process_time()
-                gen = T.iteration_generator(cfg.seed, 100 + r)
-                img, pix, jitter = batch.draw(cfg.batch_rays, gen)
-                o, d = R.pixel_rays(batch.poses[img], pix, H, W, focal)
-                x, _ = R.render_rays(field, o, d, jitter, bg, stop=cfg.stop_transmittance)
-                loss = T.method_loss(method, x, img, pix, batch, ds.intensity)[0] + cfg.tv_weight * field.tv_loss(gen)
-                opt.zero_grad(set_to_none=False)
-                loss.backward()
-                opt.step()
+                _train_step(setup, fields[w], opts[w], 100 + r, cfg.stop_transmittance)
                 c1 = time.process_time()
                 with torch.no_grad():
-                    views[w] = R.render_image(field, pose, H, W, focal, background=bg, far=6.0)
+                    views[w] = R.render_image(fields[w], pose, H, W, focal, background=bg, far=6.0)
                 c2 = time.process_time()
                 if r >= 2:  # one warm-up step and view each, twice
                     times[w][0].append(c1 - c0)

@@ -334,6 +334,8 @@ def targets(rows: list) -> list[str]:
            "|---|---|---|---|---|---|"]
     for (res, data, sensor, budget) in sorted(cells, key=lambda c: (-c[0], c[1], c[2], c[3])):
         rs = cells[(res, data, sensor, budget)]
+        # the oracle reads no spikes: its runs at another intensity are the same runs
+        oracle = {j: _mean(rs, "oracle", "ground-truth images", j)[0] for j in INTENSITIES}
         for i in INTENSITIES:
             d, nd = _mean(rs, "spikelik", "true maps", i)
             if d is None:
@@ -342,8 +344,6 @@ def targets(rows: list) -> list[str]:
             base = [(b, *_mean(rs, b, KNOWLEDGE[b], i)) for b in BASELINES]
             base = [x for x in base if x[1] is not None]
             c, nc = _mean(rs, "spikelik", "calibrated maps", i)
-            # the oracle reads no spikes: its runs at another intensity are the same runs
-            oracle = {j: _mean(rs, "oracle", "ground-truth images", j)[0] for j in INTENSITIES}
             o_from = None if oracle[i] is not None else next((j for j in INTENSITIES if oracle[j] is not None), None)
             o = oracle[i] if o_from is None else oracle[o_from]
             paper = _verdict(None if p is None else d - p, p is not None and d - p >= 3.0, min(nd, n_p))
