@@ -178,12 +178,25 @@ def perturbed_dataset(true_ds: Path, degrees: float, out: Path, seed: int = 0) -
     return out
 
 
-def train_both(row: dict, args) -> dict:
-    """Train the default method on the imported dataset and on its true-pose twin (and with
-    ``--perturb`` on the true poses turned); held-out metrics (:func:`evaluate_both`)."""
+def train_default(dataset: Path, run: Path, args) -> Path:
+    """Train the default method on ``dataset`` into ``run`` (``args.train`` iterations at
+    ``args.resolution``, CPU, seed 0); with ``args.reuse_runs`` a run whose checkpoint already holds
+    that many iterations is kept instead."""
     from spikenerf.config import TrainConfig
     from spikenerf.train import load_checkpoint, train
 
+    done = (args.reuse_runs and (run / "checkpoint.pt").is_file()
+            and load_checkpoint(run / "checkpoint.pt", "cpu")["iteration"] == args.train)
+    if not done:
+        shutil.rmtree(run, ignore_errors=True)
+        train(TrainConfig(dataset=str(dataset), iters=args.train, resolution=args.resolution, device="cpu", seed=0),
+              run, progress=False, log=lambda *a: None)
+    return run
+
+
+def train_both(row: dict, args) -> dict:
+    """Train the default method on the imported dataset and on its true-pose twin (and with
+    ``--perturb`` on the true poses turned); held-out metrics (:func:`evaluate_both`)."""
     truth = true_pose_dataset(row["out"], Path(args.truth), row, Path(f"{row['out']}_truth"))
     datasets = {"imported": row["out"], "true poses": truth}
     if args.perturb:
@@ -191,13 +204,7 @@ def train_both(row: dict, args) -> dict:
                                                                      Path(f"{row['out']}_turned"))
     out = {}
     for name, ds in datasets.items():
-        run = Path(args.work) / f"run_{row['recon']}_{name.replace(' ', '_')}"
-        done = (args.reuse_runs and (run / "checkpoint.pt").is_file()
-                and load_checkpoint(run / "checkpoint.pt", "cpu")["iteration"] == args.train)
-        if not done:
-            shutil.rmtree(run, ignore_errors=True)
-            train(TrainConfig(dataset=str(ds), iters=args.train, resolution=args.resolution, device="cpu", seed=0),
-                  run, progress=False, log=lambda *a: None)
+        run = train_default(ds, Path(args.work) / f"run_{row['recon']}_{name.replace(' ', '_')}", args)
         out[name] = evaluate_both(run)
         out[name]["run"] = run
     return out

@@ -43,7 +43,8 @@ import numpy as np
 REPO = Path(__file__).resolve().parents[1]
 sys.path[:0] = [str(REPO / "generator"), str(REPO / "trainer"), str(REPO / "bench")]
 
-from bench_import import evaluate_both, scene_depth, summarise, true_pose_dataset, true_poses, truth_images  # noqa: E402
+from bench_import import (evaluate_both, scene_depth, summarise, train_default, true_pose_dataset,  # noqa: E402
+                          true_poses, truth_images)
 from spikegen.cli import _size as parse_size  # noqa: E402
 from spikegen.importer import import_capture, pose_errors  # noqa: E402
 
@@ -102,9 +103,6 @@ def true_camera(rows: dict, args, k1: float, name: str) -> Path:
 
 
 def train_all(rows: dict, args) -> dict:
-    from spikenerf.config import TrainConfig
-    from spikenerf.train import load_checkpoint, train
-
     radial = rows["simple-radial"]["out"]
     lens_k1 = json.loads((Path(args.capture).parent / "transforms_train.json").read_text()).get("k1", 0.0)
     datasets = {"radial, k1 used": radial,
@@ -114,13 +112,7 @@ def train_all(rows: dict, args) -> dict:
                 "true camera, k1 dropped": true_camera(rows, args, 0.0, "true_camera_no_k1")}
     out = {}
     for name, ds in datasets.items():
-        run = Path(args.work) / ("run_" + name.replace(", ", "_").replace(" ", "_"))
-        done = (args.reuse_runs and (run / "checkpoint.pt").is_file()
-                and load_checkpoint(run / "checkpoint.pt", "cpu")["iteration"] == args.train)
-        if not done:
-            shutil.rmtree(run, ignore_errors=True)
-            train(TrainConfig(dataset=str(ds), iters=args.train, resolution=args.resolution, device="cpu", seed=0),
-                  run, progress=False, log=lambda *a: None)
+        run = train_default(ds, Path(args.work) / ("run_" + name.replace(", ", "_").replace(" ", "_")), args)
         out[name] = evaluate_both(run)
     return out
 
