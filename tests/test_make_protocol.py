@@ -245,3 +245,22 @@ def test_no_run_starts_after_start_within(tmp_path, monkeypatch, capsys, jobs):
     bench_protocol.main()
     assert len(results.read_text().splitlines()) == jobs  # the first run (or pair) only
     assert f"{6 - jobs} runs not started" in capsys.readouterr().out
+
+
+def test_port_bias_section_averages_each_cell_over_its_runs():
+    rate = {"kind": "rate", "intensity": 64, "x": 1.0, "subtractive": 0.25, "rsir": 0.2, "hard_reset": 0.2,
+            "hard_reset_spread": {"0.1": 0.225}}
+
+    def run(method, seed, saved, undone, gain):
+        return {"kind": "run", "sensor": "paper", "intensity": 64, "method": method, "seed": seed,
+                "psnr_object_saved": saved, "psnr_object_rate_loss_undone": {"0.1": undone, "0.05": undone - 1},
+                "oracle_gain": gain, "psnr_object_oracle_gain": saved + 1}
+
+    lines = make_protocol.port_bias_section([rate, run("spikenerf-paper", 2, 24.0, 26.0, 0.9),
+                                             run("spikenerf-paper", 0, 25.0, 27.0, 0.8), run("spikelik", 1, 26.0, 25.0, 1.0)])
+    assert "| 64 | 1 | 0.2500 | 0.2000 | 0.2000 | 0.2250 | 0.900 | 1.125 |" in lines
+    header = next(line for line in lines if line.startswith("| sensor |"))
+    assert "spread 0.05 | loss undone, spread 0.1 |" in header                    # spreads in numeric order
+    assert "| paper | 64 | spikenerf-paper | 2 (0,2) | 24.50 | 25.50 | 26.50 | 0.850 | 25.50 |" in lines
+    assert "| paper | 64 | spikelik | 1 (1) | 26.00 | 24.00 | 25.00 | 1.000 | 27.00 |" in lines
+    assert make_protocol.port_bias_section([]) == []

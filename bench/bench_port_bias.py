@@ -1,0 +1,229 @@
+"""Why the paper's port scores lower on the `paper` and `calibrated` sensors than on `rsir`: the
+published neuron's rate against the pixel that made the data, and what undoing it gives back.
+
+    python bench/bench_port_bias.py --runs-dir bench_out/protocol/runs_400    # every eligible run there
+    python bench/bench_port_bias.py RUN [RUN ...]                             # or these run folders
+
+The port (`spikenerf-paper`, trainer/spikenerf/neuron.py `paper_pixel`) predicts a pixel's count
+with the published integrate-and-fire loop: 256 steps of constant input from an empty membrane,
+a spike strictly above 1, reset to 0. That loop discards the charge left over at each spike and
+counts only whole intervals from an empty start, so for the same charge a frame ``c`` it reads
+fewer spikes than a pixel that subtracts the threshold and starts at a random phase (the `paper`
+and `calibrated` sensors, whose mean count is ``256 c``), and about as many as the reference
+generator `rsir` makes (its uniform interval noise, mean half a frame, plays the part of the lost
+residual). Trained on subtractive-reset data, the port must render a brighter luminance than the
+truth to read the same count.
+
+Two parts, both written to one results file (default ``bench/results/port_bias.jsonl``, replaced
+as a whole; ``bench/make_protocol.py`` turns it into PROTOCOL.md's section on it):
+
+- ``"kind": "rate"`` rows: the mean count / 256 of the three pixels at luminance ``x`` and
+  intensity ``I`` (``c = x I / 256``, R = 1, d = 0): subtractive reset (``c``); `rsir`, exactly
+  (``E[ln(1 + v / 255)]`` over ``v ~ Poisson(x I 255 / 256)``, the uniform noise integrated out);
+  the published loop at ``c`` itself and averaged over a spread of its input (``c (1 + u)``, ``u``
+  on 201 even points in ``[-s, s]``: a rendered pixel is a mixture, and the loop's staircase is
+  seen through it). No random draw.
+- ``"kind": "run"`` rows, one per run folder (its ``config.json``, ``metrics.json`` and the
+  ``eval_test/*_gt_vs_pred.png`` that ``spikenerf eval`` wrote): object PSNR (alpha > 0, the
+  evaluation's region and comparison space) of the saved 8-bit predictions as they are; with
+  the loop's rate loss undone, ``x -> h_s(x) 256 / I`` for each spread ``s`` (``h_s``: the averaged
+  loop above; what a subtractive-reset pixel would read for the luminance the port rendered; no
+  parameter fitted); and with one gain per run fitted by least squares in linear luminance over
+  the object pixels of the reported views themselves (an oracle: it uses the views it is scored
+  on; a diagnostic of how much of the error is a brightness scale, never a setting).
+
+The ground truth and alpha come from the dataset as the evaluation reads them
+(:func:`spikenerf.eval.reference`); the rate loss is undone with R = 1 and d = 0 (the `paper` maps
+have median R 1; the dark current is small against the lit object's charge).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from pathlib import Path
+
+import numpy as np
+
+REPO = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(REPO / "generator"))
+sys.path.insert(0, str(REPO / "trainer"))
+
+RESULTS = REPO / "bench" / "results" / "port_bias.jsonl"
+INTENSITIES = (16, 32, 64)
+LUMINANCES = (0.1, 0.3, 0.6, 1.0)
+SPREADS = (0.05, 0.1, 0.2)
+STEPS = 256
+METHODS = ("spikenerf-paper", "spikelik")  # the port, and the default as the control
+
+
+class BadInput(Exception):
+    """A run folder this bench cannot read (said in one line)."""
+
+
+def hard_reset_rate(c: np.ndarray, spread: float = 0.0, points: int = 201) -> np.ndarray:
+    """Mean count / 256 of the published loop (spikenerf.neuron.PaperIF) on constant inputs ``c``,
+    averaged over ``c (1 + u)`` for ``u`` on ``points`` even points in ``[-spread, spread]``."""
+    import torch
+
+    from spikenerf.neuron import PaperIF
+
+    c = np.asarray(c, dtype=np.float64)
+    u = np.linspace(-spread, spread, points) if spread > 0 else np.zeros(1)
+    inp = torch.tensor((c.reshape(-1, 1) * (1.0 + u.reshape(1, -1))), dtype=torch.float32)
+    return PaperIF.apply(inp, STEPS).double().mean(dim=1).numpy().reshape(c.shape)
+
+
+def rsir_rate(x: float, intensity: float) -> float:
+    """Mean charge a frame of the `rsir` generator (spikegen.sensor.rsir_charge) with R = 1, d = 0:
+    ``E[ln(1 + v / 255)]``, ``v ~ Poisson(x I 255 / 256)`` (``1 / (255 / v + U)`` integrated over
+    ``U ~ U(0, 1)``; ``v = 0`` gives 0)."""
+    lam = x * intensity * 255.0 / 256.0
+    if lam <= 0:
+        return 0.0
+    hi = int(lam + 12.0 * math.sqrt(lam) + 20)
+    v = np.arange(1, hi + 1, dtype=np.float64)
+    logpmf = v * math.log(lam) - lam - np.array([math.lgamma(k + 1.0) for k in v])
+    return float(np.sum(np.exp(logpmf) * np.log1p(v / 255.0)))
+
+
+def rate_rows(spreads=SPREADS) -> list[dict]:
+    rows = []
+    for i in INTENSITIES:
+        for x in LUMINANCES:
+            c = x * i / 256.0
+            row = {"kind": "rate", "intensity": i, "x": x, "subtractive": c, "rsir": rsir_rate(x, i),
+                   "hard_reset": float(hard_reset_rate(np.array([c]))[0])}
+            row["hard_reset_spread"] = {f"{s:g}": float(hard_reset_rate(np.array([c]), s)[0]) for s in spreads}
+            rows.append(row)
+    return rows
+
+
+def rate_loss_inverse(intensity: float, spread: float, top: float = 1.5, points: int = 1501):
+    """``(xs, h(xs))``: the luminance a subtractive-reset pixel reads (``count / 256 * 256 / I``) when
+    the published loop is fed ``xs I / 256``; ``np.interp(x, xs, hx)`` undoes the port's rate loss."""
+    xs = np.linspace(0.0, top, points)
+    return xs, hard_reset_rate(xs * intensity / 256.0, spread) * 256.0 / intensity
+
+
+def _psnr(pred_lin: np.ndarray, gt_srgb: np.ndarray, mask: np.ndarray) -> float:
+    """The evaluation's PSNR of a linear prediction (clipped to [0, 1], sRGB-encoded) in ``mask``."""
+    from spikegen.spikeio import linear_to_srgb
+    from spikenerf.metrics import psnr
+
+    return psnr(linear_to_srgb(np.clip(pred_lin, 0.0, 1.0)), gt_srgb, mask)
+
+
+def run_row(run: Path, spreads=SPREADS) -> dict:
+    """One run's object PSNRs: as saved, with the rate loss undone (per spread), with an oracle gain."""
+    from spikegen.errors import InputError
+    from spikegen.spikeio import linear_to_srgb, read_png, srgb_to_linear
+    from spikenerf.data import load_dataset
+    from spikenerf.eval import reference
+
+    run = Path(run)
+    try:
+        cfg = json.loads((run / "config.json").read_text())
+        metrics = json.loads((run / "metrics.json").read_text())
+    except (OSError, ValueError) as e:
+        raise BadInput(f"{run}: not an evaluated run ({e.__class__.__name__}: config.json and metrics.json needed)")
+    try:
+        ds = load_dataset(cfg["dataset"])
+        sensor = json.loads((Path(cfg["dataset"]) / "sensor.json").read_text())["parameters"]
+    except (InputError, OSError, KeyError, ValueError) as e:
+        raise BadInput(f"{run}: its dataset {cfg.get('dataset')!r} cannot be read ({e})")
+    split = metrics.get("split", "test")
+    views = ds.splits.get(split, [])
+    height, width = (int(v) for v in metrics["resolution"])
+    intensity = float(ds.intensity)
+    curves = {s: rate_loss_inverse(intensity, s) for s in spreads}
+    saved, undone, num, den, data = [], {s: [] for s in spreads}, 0.0, 0.0, []
+    for view in views:
+        png = run / f"eval_{split}" / f"{view.name.replace('/', '_')}.png"
+        if not png.is_file():
+            raise BadInput(f"{run}: {png.name} missing (run spikenerf eval on it first)")
+        img = read_png(png)
+        pred = srgb_to_linear(img[..., 0] if img.ndim == 3 else img)
+        kind, gt_x, alpha = reference(ds, view, height, width)
+        mask = alpha > 0
+        gt = linear_to_srgb(gt_x)
+        saved.append(_psnr(pred, gt, mask))
+        for s, (xs, hx) in curves.items():
+            undone[s].append(_psnr(np.interp(pred, xs, hx), gt, mask))
+        num += float((pred[mask] * gt_x[mask]).sum())
+        den += float((pred[mask] ** 2).sum())
+        data.append((pred, gt, mask))
+    if not views:
+        raise BadInput(f"{run}: its dataset has no {split!r} views")
+    gain = num / den if den > 0 else 1.0
+    gained = [_psnr(p * gain, g, m) for p, g, m in data]
+    return {"kind": "run", "run": run.name, "dataset": Path(cfg["dataset"]).name, "sensor": sensor.get("name"),
+            "reset": sensor.get("reset"), "intensity": int(round(intensity)), "method": cfg["method"],
+            "seed": int(cfg["seed"]), "iterations": int(metrics["iterations"]), "views": len(views),
+            "views_from": metrics.get("views_from"),
+            "psnr_object_metrics": metrics.get("psnr_object"),
+            "psnr_object_saved": float(np.mean(saved)),
+            "psnr_object_rate_loss_undone": {f"{s:g}": float(np.mean(v)) for s, v in undone.items()},
+            "oracle_gain": gain, "psnr_object_oracle_gain": float(np.mean(gained))}
+
+
+def eligible(folder: Path) -> list[Path]:
+    """Run folders under ``folder`` trained by the port or the default with true maps from all frames,
+    evaluated (metrics.json and eval_test/ present)."""
+    out = []
+    for run in sorted(p for p in folder.iterdir() if p.is_dir()):
+        try:
+            cfg = json.loads((run / "config.json").read_text())
+        except (OSError, ValueError):
+            continue
+        if (cfg.get("method") in METHODS and not cfg.get("sensor_maps") and cfg.get("frames") in (0, 256)
+                and (run / "metrics.json").is_file() and (run / "eval_test").is_dir()):
+            out.append(run)
+    return out
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="*", type=Path, help="run folders (evaluated)")
+    ap.add_argument("--runs-dir", type=Path, help="take every eligible run folder in this folder")
+    ap.add_argument("--results", type=Path, default=RESULTS)
+    args = ap.parse_args(argv)
+    runs = list(args.runs)
+    if args.runs_dir is not None:
+        if not args.runs_dir.is_dir():
+            print(f"error: {args.runs_dir}: no such folder", file=sys.stderr)
+            return 2
+        runs += eligible(args.runs_dir)
+    if not runs:
+        print("error: no run folder given (RUN ... or --runs-dir DIR with evaluated spikenerf-paper/spikelik runs)",
+              file=sys.stderr)
+        return 2
+    from tqdm import tqdm
+
+    rows = rate_rows()
+    for r in rows:
+        print(f"I {r['intensity']:2d} x {r['x']:.1f}: subtractive {r['subtractive']:.4f}  rsir {r['rsir']:.4f}  "
+              f"published loop {r['hard_reset']:.4f} (spread 0.1: {r['hard_reset_spread']['0.1']:.4f})")
+    try:
+        with tqdm(runs, desc="runs", unit="run") as bar:  # closed (its line ended) before an error is said
+            for run in bar:
+                row = run_row(run)
+                rows.append(row)
+                tqdm.write(f"{row['run']}: as saved {row['psnr_object_saved']:.2f}, rate loss undone "
+                           + ", ".join(f"{v:.2f} (spread {s})" for s, v in row["psnr_object_rate_loss_undone"].items())
+                           + f", oracle gain {row['oracle_gain']:.3f}: {row['psnr_object_oracle_gain']:.2f}")
+    except BadInput as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    from spikegen.spikeio import write_bytes_atomic
+
+    args.results.parent.mkdir(parents=True, exist_ok=True)
+    write_bytes_atomic(args.results, "".join(json.dumps(r, sort_keys=True) + "\n" for r in rows).encode())
+    print(f"{len(rows)} rows -> {args.results}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

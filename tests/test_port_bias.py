@@ -1,0 +1,102 @@
+"""bench/bench_port_bias.py: the published neuron's rate loss against the pixels that make the data,
+and the tool that finds a port's brightness bias in a run's saved predictions."""
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+torch = pytest.importorskip("torch")
+pytestmark = pytest.mark.torch
+
+BENCH = Path(__file__).resolve().parents[1] / "bench"
+sys.path.insert(0, str(BENCH))
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import bench_port_bias as pb  # noqa: E402
+
+from spikegen.spikeio import linear_to_srgb, write_json_atomic, write_png  # noqa: E402
+from test_trainer_cli import dataset  # noqa: E402,F401  (the sphere dataset fixture: paper sensor, i64)
+
+
+def test_rsir_rate_is_the_generators_mean_charge():
+    """The closed form against the generator itself (spikegen.sensor.rsir_charge, R = 1, d = 0)."""
+    from spikegen.sensor import rsir_charge
+
+    rng = np.random.default_rng(20261127)
+    for x, intensity in ((0.1, 16), (0.6, 32), (1.0, 64)):
+        q = rsir_charge(np.full((200_000, 1), x), intensity, np.ones(1), np.zeros(1), rng)
+        se = q.std() / np.sqrt(q.size)
+        assert abs(q.mean() - pb.rsir_rate(x, intensity)) < 4 * se, (x, intensity)
+
+
+def test_the_published_loop_loses_about_half_a_frame_a_spike_and_rsir_alike():
+    """At many spikes (c = 0.25, i64 x = 1) the loop reads about c / (1 + c / 2): each interval is half
+    a frame longer than the subtractive pixel's 1 / c, as rsir's uniform interval noise makes it; at a
+    few spikes (i16 x = 0.1, about 1.6 in 256 frames) the whole intervals counted from an empty
+    membrane lose far more, while rsir stays near c."""
+    c = 0.25
+    loop = pb.hard_reset_rate(np.array([c]), 0.1)[0]
+    assert loop == pytest.approx(c / (1 + c / 2), rel=0.02)
+    assert pb.rsir_rate(1.0, 64) == pytest.approx(c / (1 + c / 2), rel=0.01)
+    assert loop / c < 0.92                                       # 8 % and more below the subtractive pixel
+    few = 0.1 * 16 / 256
+    assert pb.hard_reset_rate(np.array([few]), 0.1)[0] / few < 0.7
+    assert pb.rsir_rate(0.1, 16) / few > 0.99
+    xs, hx = pb.rate_loss_inverse(64, 0.1)
+    assert np.all(np.diff(hx) >= 0) and np.all(hx[1:] < xs[1:])   # monotone, always below the luminance
+
+
+def _fake_run(root: Path, ds: Path, method: str, predict) -> Path:
+    """A run folder as spikenerf eval leaves it, with planted predictions ``predict(gt_linear)``."""
+    from spikenerf.data import load_dataset
+    from spikenerf.eval import reference
+
+    run = root / method
+    (run / "eval_test").mkdir(parents=True)
+    data = load_dataset(ds)
+    for view in data.splits["test"]:
+        _, gt_x, _ = reference(data, view, data.height, data.width)
+        write_png(run / "eval_test" / f"{view.name.replace('/', '_')}.png", linear_to_srgb(np.clip(predict(gt_x), 0, 1)))
+    write_json_atomic(run / "config.json", {"dataset": str(ds), "method": method, "seed": 3, "frames": 256,
+                                            "sensor_maps": ""})
+    write_json_atomic(run / "metrics.json", {"split": "test", "resolution": [data.height, data.width],
+                                             "iterations": 10, "psnr_object": 20.0, "views_from": "train every 8th"})
+    return run
+
+
+def test_the_bench_finds_a_planted_port_bias_and_leaves_an_unbiased_run_alone(dataset, tmp_path):
+    """Predictions made as the port makes them on subtractive-reset data (the luminance the published loop
+    needs to read the true count) score low as saved, near the 8-bit limit once the rate loss is undone,
+    and need a gain below 1; predictions equal to the truth score best as saved and lose when 'undone'."""
+    xs, hx = pb.rate_loss_inverse(64, 0.1)
+    biased = _fake_run(tmp_path, dataset, "spikenerf-paper", lambda gt: np.interp(gt, hx, xs))
+    fair = _fake_run(tmp_path, dataset, "spikelik", lambda gt: gt)
+    b, f = pb.run_row(biased), pb.run_row(fair)
+    assert b["sensor"] == "paper" and b["reset"] == "subtract" and b["intensity"] == 64 and b["views"] == 2
+    assert b["psnr_object_rate_loss_undone"]["0.1"] > b["psnr_object_saved"] + 6
+    assert b["psnr_object_rate_loss_undone"]["0.1"] > 35
+    assert b["oracle_gain"] < 0.95 and b["psnr_object_oracle_gain"] > b["psnr_object_saved"]
+    assert f["psnr_object_saved"] > 35 and f["oracle_gain"] == pytest.approx(1.0, abs=0.01)
+    assert f["psnr_object_rate_loss_undone"]["0.1"] < f["psnr_object_saved"] - 6
+    assert pb.eligible(tmp_path) == [fair, biased]                 # sorted by folder name
+
+
+def test_cli_writes_every_row_or_nothing(dataset, tmp_path, capsys):
+    run = _fake_run(tmp_path / "runs", dataset, "spikenerf-paper", lambda gt: gt)
+    out = tmp_path / "bias.jsonl"
+    assert pb.main([str(run), "--results", str(out)]) == 0
+    rows = [json.loads(line) for line in out.read_text().splitlines()]
+    assert sum(r["kind"] == "rate" for r in rows) == len(pb.INTENSITIES) * len(pb.LUMINANCES)
+    assert [r["run"] for r in rows if r["kind"] == "run"] == ["spikenerf-paper"]
+    before = out.read_bytes()
+    (run / "eval_test" / "train_r_8.png").unlink()
+    assert pb.main([str(run), "--results", str(out)]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]   # beside tqdm's bar
+    assert len(err) == 1 and err[0].startswith("error: ") and "train_r_8.png missing" in err[0]
+    assert out.read_bytes() == before                              # nothing half-written
+    assert pb.main(["--runs-dir", str(tmp_path / "nowhere"), "--results", str(out)]) == 2
+    assert pb.main([str(tmp_path / "nowhere"), "--results", str(out)]) == 2
+    assert out.read_bytes() == before
