@@ -42,6 +42,7 @@ import argparse
 import json
 import math
 import sys
+from functools import lru_cache
 from pathlib import Path
 
 import numpy as np
@@ -100,6 +101,7 @@ def rate_rows(spreads=SPREADS) -> list[dict]:
     return rows
 
 
+@lru_cache(maxsize=None)  # one curve per (intensity, spread), shared by every run at that intensity
 def rate_loss_inverse(intensity: float, spread: float, top: float = 1.5, points: int = 1501):
     """``(xs, h(xs))``: the luminance a subtractive-reset pixel reads (``count / 256 * 256 / I``) when
     the published loop is fed ``xs I / 256``; ``np.interp(x, xs, hx)`` undoes the port's rate loss."""
@@ -118,6 +120,7 @@ def _psnr(pred_lin: np.ndarray, gt_srgb: np.ndarray, mask: np.ndarray) -> float:
 def run_row(run: Path, spreads=SPREADS) -> dict:
     """One run's object PSNRs: as saved, with the rate loss undone (per spread), with an oracle gain."""
     from spikegen.errors import InputError
+    from spikegen.sensorfile import load_sensor
     from spikegen.spikeio import linear_to_srgb, read_png, srgb_to_linear
     from spikenerf.data import load_dataset
     from spikenerf.eval import reference
@@ -130,11 +133,13 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
         raise BadInput(f"{run}: not an evaluated run ({e.__class__.__name__}: config.json and metrics.json needed)")
     try:
         ds = load_dataset(cfg["dataset"])
-        sensor = json.loads((Path(cfg["dataset"]) / "sensor.json").read_text())["parameters"]
-    except (InputError, OSError, KeyError, ValueError) as e:
+        sensor = load_sensor(Path(cfg["dataset"]) / "sensor.json")
+    except (InputError, KeyError) as e:
         raise BadInput(f"{run}: its dataset {cfg.get('dataset')!r} cannot be read ({e})")
     split = metrics.get("split", "test")
     views = ds.splits.get(split, [])
+    if not views:
+        raise BadInput(f"{run}: its dataset has no {split!r} views")
     height, width = (int(v) for v in metrics["resolution"])
     intensity = float(ds.intensity)
     curves = {s: rate_loss_inverse(intensity, s) for s in spreads}
@@ -145,7 +150,7 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
             raise BadInput(f"{run}: {png.name} missing (run spikenerf eval on it first)")
         img = read_png(png)
         pred = srgb_to_linear(img[..., 0] if img.ndim == 3 else img)
-        kind, gt_x, alpha = reference(ds, view, height, width)
+        _, gt_x, alpha = reference(ds, view, height, width)
         mask = alpha > 0
         gt = linear_to_srgb(gt_x)
         saved.append(_psnr(pred, gt, mask))
@@ -154,12 +159,10 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
         num += float((pred[mask] * gt_x[mask]).sum())
         den += float((pred[mask] ** 2).sum())
         data.append((pred, gt, mask))
-    if not views:
-        raise BadInput(f"{run}: its dataset has no {split!r} views")
     gain = num / den if den > 0 else 1.0
     gained = [_psnr(p * gain, g, m) for p, g, m in data]
-    return {"kind": "run", "run": run.name, "dataset": Path(cfg["dataset"]).name, "sensor": sensor.get("name"),
-            "reset": sensor.get("reset"), "intensity": int(round(intensity)), "method": cfg["method"],
+    return {"kind": "run", "run": run.name, "dataset": Path(cfg["dataset"]).name, "sensor": sensor.name,
+            "reset": sensor.reset, "intensity": int(round(intensity)), "method": cfg["method"],
             "seed": int(cfg["seed"]), "iterations": int(metrics["iterations"]), "views": len(views),
             "views_from": metrics.get("views_from"),
             "psnr_object_metrics": metrics.get("psnr_object"),
