@@ -26,9 +26,11 @@ as a whole; ``bench/make_protocol.py`` turns it into PROTOCOL.md's section on it
 - ``"kind": "run"`` rows, one per run folder (its ``config.json``, ``metrics.json`` and the
   ``eval_test/*_gt_vs_pred.png`` that ``spikenerf eval`` wrote): object PSNR (alpha > 0, the
   evaluation's region and comparison space) of the saved 8-bit predictions as they are; with
-  the loop's rate loss undone, ``x -> h_s(x) 256 / I`` for each spread ``s`` (``h_s``: the averaged
-  loop above; what a subtractive-reset pixel would read for the luminance the port rendered; no
-  parameter fitted); and with one gain per run fitted by least squares in linear luminance over
+  the loop's rate loss undone, ``x -> r^-1(h_s(x))`` for each spread ``s`` (``h_s``: the averaged
+  loop above; ``r``: the mean charge a frame of the pixel that made the run's data, ``y I / 256``
+  for a subtractive-reset `if` sensor, ``rsir_rate`` for `rsir`: the luminance at which the data's
+  pixel reads what the loop reads at the luminance the port rendered; no parameter fitted); and
+  with one gain per run fitted by least squares in linear luminance over
   the object pixels of the reported views themselves (an oracle: it uses the views it is scored
   on; a diagnostic of how much of the error is a brightness scale, never a setting).
 
@@ -101,12 +103,39 @@ def rate_rows(spreads=SPREADS) -> list[dict]:
     return rows
 
 
-@lru_cache(maxsize=None)  # one curve per (intensity, spread), shared by every run at that intensity
-def rate_loss_inverse(intensity: float, spread: float, top: float = 1.5, points: int = 1501):
-    """``(xs, h(xs))``: the luminance a subtractive-reset pixel reads (``count / 256 * 256 / I``) when
-    the published loop is fed ``xs I / 256``; ``np.interp(x, xs, hx)`` undoes the port's rate loss."""
+PIXELS = ("subtractive", "rsir")  # the data's pixels whose mean charge a frame this bench can invert
+
+
+def pixel_of(sensor) -> str:
+    """Which pixel made a dataset: ``"rsir"`` (the reference generator) or ``"subtractive"`` (an `if`
+    sensor with subtractive reset, no refractory period and gamma 1, whose mean charge a frame is
+    ``R x I / 256 + d``; shot noise and threshold jitter leave the mean as it is); any other sensor is
+    refused."""
+    if sensor.kind == "rsir":
+        return "rsir"
+    if sensor.kind == "if" and sensor.reset == "subtract" and not sensor.refractory_frames and sensor.gamma == 1:
+        return "subtractive"
+    raise BadInput(f"sensor {sensor.name!r} (kind {sensor.kind}, reset {sensor.reset}, refractory "
+                   f"{sensor.refractory_frames}, gamma {sensor.gamma:g}): no mean-rate model here to undo the "
+                   "port's loss against")
+
+
+@lru_cache(maxsize=None)  # one curve per (intensity, spread, pixel), shared by every run at that intensity
+def rate_loss_inverse(intensity: float, spread: float, pixel: str = "subtractive", top: float = 1.5,
+                      points: int = 1501):
+    """``(xs, y(xs))``: the luminance ``y`` at which the data's pixel (``pixel``: subtractive, whose mean
+    charge a frame is ``y I / 256``, or `rsir`) reads the mean charge the published loop reads when fed
+    ``xs I / 256``; ``np.interp(x, xs, y)`` undoes the port's rate loss. Read past ``top`` the curve
+    holds its last value (the evaluation clips to 1 anyway)."""
     xs = np.linspace(0.0, top, points)
-    return xs, hard_reset_rate(xs * intensity / 256.0, spread) * 256.0 / intensity
+    loop = hard_reset_rate(xs * intensity / 256.0, spread)
+    if pixel == "subtractive":
+        return xs, loop * 256.0 / intensity
+    if pixel != "rsir":
+        raise ValueError(f"unknown pixel {pixel!r}")
+    ys = np.linspace(0.0, 2.0 * top, 2 * points - 1)       # rsir reads less than y I / 256: its inverse runs higher
+    r = np.array([rsir_rate(y, intensity) for y in ys])    # strictly increasing in y
+    return xs, np.interp(loop, r, ys)
 
 
 def _psnr(pred_lin: np.ndarray, gt_srgb: np.ndarray, mask: np.ndarray) -> float:
@@ -142,7 +171,8 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
         raise BadInput(f"{run}: its dataset has no {split!r} views")
     height, width = (int(v) for v in metrics["resolution"])
     intensity = float(ds.intensity)
-    curves = {s: rate_loss_inverse(intensity, s) for s in spreads}
+    pixel = pixel_of(sensor)
+    curves = {s: rate_loss_inverse(intensity, s, pixel) for s in spreads}
     saved, undone, num, den, data = [], {s: [] for s in spreads}, 0.0, 0.0, []
     for view in views:
         png = run / f"eval_{split}" / f"{view.name.replace('/', '_')}.png"
@@ -162,7 +192,7 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
     gain = num / den if den > 0 else 1.0
     gained = [_psnr(p * gain, g, m) for p, g, m in data]
     return {"kind": "run", "run": run.name, "dataset": Path(cfg["dataset"]).name, "sensor": sensor.name,
-            "reset": sensor.reset, "intensity": int(round(intensity)), "method": cfg["method"],
+            "reset": sensor.reset, "pixel": pixel, "intensity": int(round(intensity)), "method": cfg["method"],
             "seed": int(cfg["seed"]), "iterations": int(metrics["iterations"]), "views": len(views),
             "views_from": metrics.get("views_from"),
             "psnr_object_metrics": metrics.get("psnr_object"),

@@ -391,11 +391,14 @@ def port_bias_section(rows: list) -> list[str]:
         spreads = sorted({s for r in runs for s in r["psnr_object_rate_loss_undone"]}, key=float)
         out += ["Object PSNR (dB; alpha > 0; the saved 8-bit predictions of each run's held-out views, so within "
                 "about 0.01 dB of its row above), mean over the runs: as saved; with the loop's rate loss undone "
-                "(each rendered luminance x replaced by what a subtractive-reset pixel reads when the loop is fed "
-                "x, averaged at spread s: no parameter fitted); and times one gain per run fitted on the reported "
+                "(each rendered luminance x replaced by the luminance at which the pixel that made the run's data "
+                "reads what the loop reads when fed x, averaged at spread s: the subtractive pixel for `paper` and "
+                "`calibrated`, the `rsir` generator's for `rsir`; no parameter fitted); and times one gain per run "
+                "fitted on the reported "
                 "views themselves (an oracle: a diagnostic of how much of the error is a brightness scale, never "
                 "a setting; gain mean). `spikelik`, the default, is the control: it models the subtractive "
-                "reset, so undoing a loss it does not have makes it worse.", "",
+                "reset, so undoing a loss it does not have makes it worse. On `rsir` data the loop and the "
+                "data's pixel lose about alike, so there the port should need neither (a counter-check).", "",
                 "| sensor | I | method | runs (seeds) | as saved | " + " | ".join(f"loss undone, spread {s}"
                                                                          for s in spreads)
                 + " | oracle gain | with it |", "|---|---|---|---|---|" + "---|" * len(spreads) + "---|---|"]
