@@ -398,7 +398,8 @@ def port_bias_section(rows: list) -> list[str]:
                 "views themselves (an oracle: a diagnostic of how much of the error is a brightness scale, never "
                 "a setting; gain mean). `spikelik`, the default, is the control: it models the subtractive "
                 "reset, so undoing a loss it does not have makes it worse. On `rsir` data the loop and the "
-                "data's pixel lose about alike, so there the port should need neither (a counter-check).", "",
+                "data's pixel lose about alike (last column of the rate table), so there the port's bias and what "
+                "undoing it gives back should be small: a counter-check.", "",
                 "| sensor | I | method | runs (seeds) | as saved | " + " | ".join(f"loss undone, spread {s}"
                                                                          for s in spreads)
                 + " | oracle gain | with it |", "|---|---|---|---|---|" + "---|" * len(spreads) + "---|---|"]
