@@ -133,9 +133,15 @@ def rate_loss_inverse(intensity: float, spread: float, pixel: str = "subtractive
         return xs, loop * 256.0 / intensity
     if pixel != "rsir":
         raise ValueError(f"unknown pixel {pixel!r}")
-    ys = np.linspace(0.0, 2.0 * top, 2 * points - 1)       # rsir reads less than y I / 256: its inverse runs higher
-    r = np.array([rsir_rate(y, intensity) for y in ys])    # strictly increasing in y
+    ys, r = _rsir_curve(intensity, 2.0 * top, 2 * points - 1)  # rsir reads less than y I / 256: its inverse runs higher
     return xs, np.interp(loop, r, ys)
+
+
+@lru_cache(maxsize=None)  # the rsir pixel's curve depends on the intensity only, not on the loop's spread
+def _rsir_curve(intensity: float, top: float, points: int):
+    """``(ys, rsir_rate(ys))`` on ``points`` even luminances in ``[0, top]``; strictly increasing."""
+    ys = np.linspace(0.0, top, points)
+    return ys, np.array([rsir_rate(y, intensity) for y in ys])
 
 
 def _psnr(pred_lin: np.ndarray, gt_srgb: np.ndarray, mask: np.ndarray) -> float:

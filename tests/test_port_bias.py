@@ -18,7 +18,7 @@ sys.path.insert(0, str(Path(__file__).resolve().parent))
 import bench_port_bias as pb  # noqa: E402
 
 from spikegen.spikeio import linear_to_srgb, write_json_atomic, write_png  # noqa: E402
-from test_trainer_cli import ANGLE_X, _pose, _sphere_png, dataset  # noqa: E402,F401  (dataset: the sphere, paper sensor, i64)
+from test_trainer_cli import dataset, sphere_dataset  # noqa: E402,F401  (dataset: the sphere, paper sensor, i64)
 
 
 def test_rsir_rate_is_the_generators_mean_charge():
@@ -52,16 +52,7 @@ def test_the_published_loop_loses_about_half_a_frame_a_spike_and_rsir_alike():
 @pytest.fixture(scope="module")
 def rsir_dataset(tmp_path_factory):
     """The sphere of test_trainer_cli's fixture, converted with the `rsir` generator (i64)."""
-    from spikegen.dataset import convert
-
-    src = tmp_path_factory.mktemp("sphere_rsir")
-    frames = []
-    for k in range(16):
-        _sphere_png(src / f"train/r_{k}.png")
-        frames.append({"file_path": f"./train/r_{k}", "transform_matrix": _pose(0.4 * k, 0.2 + 0.05 * (k % 5)).tolist()})
-    write_json_atomic(src / "transforms_train.json", {"camera_angle_x": ANGLE_X, "frames": frames})
-    (folder,) = convert(src, tmp_path_factory.mktemp("ds_rsir"), [64], sensor="rsir", progress=False)
-    return folder
+    return sphere_dataset(tmp_path_factory, "rsir")
 
 
 def test_the_loss_is_undone_against_the_datas_own_pixel():

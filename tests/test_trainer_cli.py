@@ -45,20 +45,25 @@ def _sphere_png(path, dist=4.0311):
     write_png(path, rgba)
 
 
-@pytest.fixture(scope="module")
-def dataset(tmp_path_factory):
+def sphere_dataset(tmp_path_factory, sensor: str = "paper"):
+    """The sphere seen from 16 train views, converted with ``sensor`` at i64: its dataset folder."""
     from spikegen.dataset import convert
 
-    src = tmp_path_factory.mktemp("sphere")
+    src = tmp_path_factory.mktemp(f"sphere_{sensor}")
     frames = []
     for k in range(16):
         name = f"./train/r_{k}"
         _sphere_png(src / f"train/r_{k}.png")
         frames.append({"file_path": name, "transform_matrix": _pose(0.4 * k, 0.2 + 0.05 * (k % 5)).tolist()})
     write_json_atomic(src / "transforms_train.json", {"camera_angle_x": ANGLE_X, "frames": frames})
-    out = tmp_path_factory.mktemp("ds")
-    (folder,) = convert(src, out, [64], sensor="paper", progress=False)
+    out = tmp_path_factory.mktemp(f"ds_{sensor}")
+    (folder,) = convert(src, out, [64], sensor=sensor, progress=False)
     return folder
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    return sphere_dataset(tmp_path_factory)
 
 
 def _cfg(dataset, **kw):
