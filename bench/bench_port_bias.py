@@ -32,7 +32,13 @@ as a whole; ``bench/make_protocol.py`` turns it into PROTOCOL.md's section on it
   pixel reads what the loop reads at the luminance the port rendered; no parameter fitted); and
   with one gain per run fitted by least squares in linear luminance over
   the object pixels of the reported views themselves (an oracle: it uses the views it is scored
-  on; a diagnostic of how much of the error is a brightness scale, never a setting).
+  on; a diagnostic of how much of the error is a brightness scale, never a setting); and where the
+  error lies: the object pixels binned by the count a pixel of the data expects over the 256 frames at
+  its true luminance (``x I``, edges ``COUNT_EDGES``; below 1 the published loop, fed a constant
+  input from an empty membrane, reads no spike at all), each bin's share of the pixels and its part
+  of the pooled object MSE (sRGB, all views' object pixels together, so the parts add up to the
+  pooled MSE; the PSNRs above are means over views), as saved and with the loss undone at spread
+  ``BIN_SPREAD``.
 
 The ground truth and alpha come from the dataset as the evaluation reads them
 (:func:`spikenerf.eval.reference`); the rate loss is undone with R = 1 and d = 0 (the `paper` maps
@@ -57,6 +63,8 @@ RESULTS = REPO / "bench" / "results" / "port_bias.jsonl"
 INTENSITIES = (16, 32, 64)
 LUMINANCES = (0.1, 0.3, 0.6, 1.0)
 SPREADS = (0.05, 0.1, 0.2)
+BIN_SPREAD = 0.1  # the spread at which the error is broken down by expected count (run rows' "by_expected_count")
+COUNT_EDGES = (0, 1, 2, 4, 8, 16)  # expected spikes in the 256 frames at the true luminance (x I); last bin open
 STEPS = 256
 METHODS = ("spikenerf-paper", "spikelik")  # the port, and the default as the control
 
@@ -144,6 +152,19 @@ def _rsir_curve(intensity: float, top: float, points: int):
     return ys, np.array([rsir_rate(y, intensity) for y in ys])
 
 
+def _sq_err(pred_lin: np.ndarray, gt_srgb: np.ndarray) -> np.ndarray:
+    """Per-pixel squared error in the evaluation's comparison space (prediction clipped, sRGB-encoded)."""
+    from spikegen.spikeio import linear_to_srgb
+
+    return (linear_to_srgb(np.clip(pred_lin, 0.0, 1.0)) - gt_srgb) ** 2
+
+
+def count_bin(gt_x: np.ndarray, intensity: float) -> np.ndarray:
+    """Each pixel's bin of ``COUNT_EDGES`` by the count expected over the 256 frames, ``x I`` (0 for
+    ``x I < 1``, ..., ``len(COUNT_EDGES) - 1`` for ``x I >= 16``)."""
+    return np.searchsorted(np.asarray(COUNT_EDGES[1:], dtype=np.float64), gt_x * intensity, side="right")
+
+
 def _psnr(pred_lin: np.ndarray, gt_srgb: np.ndarray, mask: np.ndarray) -> float:
     """The evaluation's PSNR of a linear prediction (clipped to [0, 1], sRGB-encoded) in ``mask``."""
     from spikegen.spikeio import linear_to_srgb
@@ -180,6 +201,9 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
     pixel = pixel_of(sensor)
     curves = {s: rate_loss_inverse(intensity, s, pixel) for s in spreads}
     saved, undone, num, den, data = [], {s: [] for s in spreads}, 0.0, 0.0, []
+    bins = len(COUNT_EDGES)
+    pixels, se_saved, se_undone = np.zeros(bins), np.zeros(bins), np.zeros(bins)
+    bin_curve = rate_loss_inverse(intensity, BIN_SPREAD, pixel)
     for view in views:
         png = run / f"eval_{split}" / f"{view.name.replace('/', '_')}.png"
         if not png.is_file():
@@ -192,10 +216,15 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
         saved.append(_psnr(pred, gt, mask))
         for s, (xs, hx) in curves.items():
             undone[s].append(_psnr(np.interp(pred, xs, hx), gt, mask))
+        b = count_bin(gt_x[mask], intensity)
+        pixels += np.bincount(b, minlength=bins)
+        se_saved += np.bincount(b, weights=_sq_err(pred[mask], gt[mask]), minlength=bins)
+        se_undone += np.bincount(b, weights=_sq_err(np.interp(pred[mask], *bin_curve), gt[mask]), minlength=bins)
         num += float((pred[mask] * gt_x[mask]).sum())
         den += float((pred[mask] ** 2).sum())
         data.append((pred, gt, mask))
     gain = num / den if den > 0 else 1.0
+    total = max(pixels.sum(), 1.0)
     gained = [_psnr(p * gain, g, m) for p, g, m in data]
     return {"kind": "run", "run": run.name, "dataset": Path(cfg["dataset"]).name, "sensor": sensor.name,
             "reset": sensor.reset, "pixel": pixel, "intensity": int(round(intensity)), "method": cfg["method"],
@@ -204,7 +233,10 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
             "psnr_object_metrics": metrics.get("psnr_object"),
             "psnr_object_saved": float(np.mean(saved)),
             "psnr_object_rate_loss_undone": {f"{s:g}": float(np.mean(v)) for s, v in undone.items()},
-            "oracle_gain": gain, "psnr_object_oracle_gain": float(np.mean(gained))}
+            "oracle_gain": gain, "psnr_object_oracle_gain": float(np.mean(gained)),
+            "by_expected_count": {"edges": list(COUNT_EDGES), "spread": BIN_SPREAD,
+                                  "pixels": (pixels / total).tolist(), "mse_saved": (se_saved / total).tolist(),
+                                  "mse_undone": (se_undone / total).tolist()}}
 
 
 def eligible(folder: Path) -> list[Path]:

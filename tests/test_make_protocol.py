@@ -264,3 +264,30 @@ def test_port_bias_section_averages_each_cell_over_its_runs():
     assert "| paper | 64 | spikenerf-paper | 2 (0,2) | 24.50 | 25.50 | 26.50 | 0.850 | 25.50 |" in lines
     assert "| paper | 64 | spikelik | 1 (1) | 26.00 | 24.00 | 25.00 | 1.000 | 27.00 |" in lines
     assert make_protocol.port_bias_section([]) == []
+    assert not any("Where the port's error lies" in line for line in lines)   # no run binned: no such table
+
+
+def test_error_by_count_averages_the_bins_and_says_where_the_excess_is():
+    def run(method, seed, saved, undone, pixels=(0.25, 0.75)):
+        return {"kind": "run", "sensor": "paper", "intensity": 16, "method": method, "seed": seed,
+                "psnr_object_saved": 20.0, "psnr_object_rate_loss_undone": {"0.1": 21.0},
+                "oracle_gain": 1.0, "psnr_object_oracle_gain": 21.0,
+                "by_expected_count": {"edges": [0, 1], "spread": 0.1, "pixels": list(pixels),
+                                      "mse_saved": list(saved), "mse_undone": list(undone)}}
+
+    lines = make_protocol.port_bias_section([
+        run("spikenerf-paper", 0, (8e-4, 2e-4), (5e-4, 2e-4)), run("spikenerf-paper", 1, (6e-4, 2e-4), (7e-4, 2e-4)),
+        run("spikelik", 0, (2e-4, 1e-4), (9e-4, 9e-4))])
+    i = lines.index(next(line for line in lines if line.startswith("| sensor | I | runs port / default |")))
+    assert lines[i] == "| sensor | I | runs port / default | | x I < 1 | ≥ 1 | all |"
+    assert lines[i + 2] == "| paper | 16 | 2 / 1 | object pixels (%) | 25.0 | 75.0 | 100.0 |"
+    assert lines[i + 3] == "| | | | default, as saved | 2.00 | 1.00 | 3.00 |"
+    assert lines[i + 4] == "| | | | port, as saved | 7.00 | 2.00 | 9.00 |"
+    assert lines[i + 5] == "| | | | port, loss undone | 6.00 | 2.00 | 8.00 |"
+    assert lines[i + 6] == "| | | | port undone − default | 4.00 | 1.00 | 5.00 |"
+    assert lines[i + 8] == ("The port's excess over the default, loss undone (x 10⁴): paper i16: +5.00 in all, +4.00 in "
+                            "the 25.0 % of object pixels expecting under one spike (80 % of it).")
+    lines = make_protocol.port_bias_section([run("spikenerf-paper", 0, (1e-4, 5e-4), (1e-4, 5e-4)),
+                                             run("spikelik", 0, (2e-4, 1e-4), (2e-4, 1e-4))])
+    assert lines[-2].endswith("paper i16: +3.00 in all, -1.00 in the 25.0 % of object pixels expecting under one "
+                              "spike, the largest part at ≥ 1 (+4.00).")

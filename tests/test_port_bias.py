@@ -125,6 +125,36 @@ def test_the_bench_finds_a_planted_port_bias_and_leaves_an_unbiased_run_alone(da
     assert pb.eligible(tmp_path) == [fair, biased]                 # sorted by folder name
 
 
+def test_the_bench_says_in_which_counts_the_error_lies(dataset, tmp_path):
+    """The object pixels binned by the count they expect over the 256 frames (x I): the shares add to 1,
+    the parts to the pooled object MSE (computed here from the saved images), and an error planted only
+    in the pixels expecting fewer than 16 spikes shows in those bins and nowhere else."""
+    from spikegen.spikeio import read_png, srgb_to_linear
+    from spikenerf.data import load_dataset
+    from spikenerf.eval import reference
+
+    planted = _fake_run(tmp_path, dataset, "spikenerf-paper", lambda gt: np.where(gt * 64 < 16, gt + 0.05, gt))
+    fair = _fake_run(tmp_path, dataset, "spikelik", lambda gt: gt)
+    p, f = pb.run_row(planted)["by_expected_count"], pb.run_row(fair)["by_expected_count"]
+    assert p["edges"] == list(pb.COUNT_EDGES) and p["pixels"] == f["pixels"]
+    assert sum(p["pixels"]) == pytest.approx(1.0)
+    low = np.asarray(pb.COUNT_EDGES) < 16
+    assert sum(np.asarray(p["pixels"])[low]) > 0.05 and sum(np.asarray(p["pixels"])[~low]) > 0.05
+    excess = np.subtract(p["mse_saved"], f["mse_saved"])
+    assert np.all(excess[~low] == 0) and excess[low].sum() > 1e-3
+    data = load_dataset(dataset)
+    se, n = 0.0, 0
+    for view in data.splits["test"]:
+        _, gt_x, alpha = reference(data, view, data.height, data.width)
+        img = read_png(planted / "eval_test" / f"{view.name.replace('/', '_')}.png")
+        pred = srgb_to_linear(img[..., 0] if img.ndim == 3 else img)
+        m = alpha > 0
+        se += float(((linear_to_srgb(np.clip(pred[m], 0, 1)) - linear_to_srgb(gt_x[m])) ** 2).sum())
+        n += int(m.sum())
+    assert sum(p["mse_saved"]) == pytest.approx(se / n, rel=1e-9)
+    assert pb.count_bin(np.array([0.0, 0.99, 1.0, 15.9, 16.0, 300.0]) / 64, 64).tolist() == [0, 0, 1, 4, 5, 5]
+
+
 def test_on_rsir_data_the_bench_undoes_the_loss_against_rsir(rsir_dataset, tmp_path):
     """A port's predictions on `rsir` data (the luminance at which the loop reads what the rsir pixel read
     of the truth) come back to the truth when undone against the rsir pixel; the row names it."""
