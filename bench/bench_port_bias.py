@@ -33,12 +33,12 @@ as a whole; ``bench/make_protocol.py`` turns it into PROTOCOL.md's section on it
   with one gain per run fitted by least squares in linear luminance over
   the object pixels of the reported views themselves (an oracle: it uses the views it is scored
   on; a diagnostic of how much of the error is a brightness scale, never a setting); and where the
-  error lies: the object pixels binned by the count a pixel of the data expects over the 256 frames at
-  its true luminance (``x I``, edges ``COUNT_EDGES``; below 1 the published loop, fed a constant
-  input from an empty membrane, reads no spike at all), each bin's share of the pixels and its part
-  of the pooled object MSE (sRGB, all views' object pixels together, so the parts add up to the
-  pooled MSE; the PSNRs above are means over views), as saved and with the loss undone at spread
-  ``BIN_SPREAD``.
+  error lies: the object pixels binned by the count a pixel of the data expects over the 256
+  frames at its true luminance (``x I``, with R = 1 and d = 0 as below; edges ``COUNT_EDGES``;
+  below 1 the published loop, fed a constant input from an empty membrane, reads no spike at
+  all), each bin's share of the pixels and its part of the pooled object MSE (sRGB, all views'
+  object pixels together, so the parts add up to the pooled MSE; the PSNRs above are means over
+  views), as saved and with the loss undone at spread ``BIN_SPREAD``.
 
 The ground truth and alpha come from the dataset as the evaluation reads them
 (:func:`spikenerf.eval.reference`); the rate loss is undone with R = 1 and d = 0 (the `paper` maps
