@@ -308,11 +308,24 @@ def measured(rows: list) -> list[str]:
 BASELINES = ("spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi")
 
 
+def _values(rows: list, method: str, knowledge: str, intensity: int, key: str = "psnr_object") -> list:
+    """One metric of one method's runs (one a seed) at one intensity, from all frames."""
+    return [r["metrics"][key] for r in rows if r["method"] == method and r["knowledge"] == knowledge
+            and r["intensity"] == intensity and r["frames"] == 0 and r["metrics"].get(key) is not None]
+
+
 def _mean(rows: list, method: str, knowledge: str, intensity: int, key: str = "psnr_object"):
     """(mean, number of seeds) of one metric over one method's runs at one intensity; (None, 0) when none."""
-    v = [r["metrics"][key] for r in rows if r["method"] == method and r["knowledge"] == knowledge
-         and r["intensity"] == intensity and r["frames"] == 0 and r["metrics"].get(key) is not None]
+    v = _values(rows, method, knowledge, intensity, key)
     return (float(np.mean(v)), len(v)) if v else (None, 0)
+
+
+def tie_band(a: list, b: list):
+    """Twice the standard error of the difference of two seed means (sample SDs), or None with fewer than
+    two seeds on either side: a margin inside it is a tie, neither method beating the other."""
+    if len(a) < 2 or len(b) < 2:
+        return None
+    return 2.0 * float(np.sqrt(np.var(a, ddof=1) / len(a) + np.var(b, ddof=1) / len(b)))
 
 
 def _verdict(diff, ok: bool, n: int) -> str:
@@ -350,7 +363,13 @@ def targets(rows: list) -> list[str]:
             paper = _verdict(None if p is None else d - p, p is not None and d - p >= 3.0, min(nd, n_p))
             if base:
                 name, b, nb = max(base, key=lambda x: x[1])
-                best = _verdict(d - b, d - b > 0, min(nd, nb)) + f" vs {name}"
+                band = tie_band(_values(rs, "spikelik", "true maps", i), _values(rs, name, KNOWLEDGE[name], i))
+                if band is not None and abs(d - b) <= band:
+                    best = f"{d - b:+.2f} (tie: within ±{band:.2f}" + ("" if min(nd, nb) >= len(SEEDS) else
+                                                                     f"; {min(nd, nb)} of {len(SEEDS)} seeds") + ")"
+                else:
+                    best = _verdict(d - b, d - b > 0, min(nd, nb))
+                best += f" vs {name}"
                 if len(base) < len(BASELINES):
                     best += f" ({len(base)} of {len(BASELINES)} baselines run)"
             else:
@@ -500,7 +519,10 @@ def main() -> None:
     goals = targets(rows)
     if goals:
         lines += ["## Targets (current trainer; object PSNR, dB, means over the seeds run)", ""] + goals + [""]
-        lines += ["A margin counts only with all three seeds; fewer are marked. The last column is the "
+        lines += ["A margin counts only with all three seeds; fewer are marked. Against the best baseline, a "
+                  "margin within twice the standard error of the difference of the two seed means (sample SDs "
+                  "over the seeds; two seeds or more on each side) is a tie, neither beating the other; with "
+                  "one seed on a side no such band exists and the sign decides. The last column is the "
                   "oracle's margin over the port: the same field fitted to the ground-truth images "
                   "themselves, a practical ceiling (measured, not a bound) on what a better spike objective "
                   "can gain with this field. Where it is below 3 dB, the first target needs a better field, "

@@ -6,6 +6,7 @@ import json
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 BENCH = Path(__file__).resolve().parents[1] / "bench"
@@ -50,6 +51,23 @@ def test_targets_margins_and_verdicts():
     assert not any("| i32 |" in line for line in table)                # no default run: no line
     other = next(line for line in table if "9000 it" in line)         # not mixed into the 3000 means
     assert [c.strip() for c in other.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]
+
+
+def test_a_margin_over_the_best_baseline_inside_the_seeds_noise_is_a_tie():
+    rows = [_row("spikelik", "true maps", 25.0 + 0.1 * s, seed=s) for s in range(3)]       # 25.1, SD 0.1
+    rows += [_row("spikenerf", "true maps", 25.05 + 0.1 * s, seed=s) for s in range(3)]     # 25.15, SD 0.1
+
+    def cell(rows):
+        line = next(line for line in make_protocol.targets(rows) if "| i64 |" in line)
+        return [c.strip() for c in line.split("|")[1:-1]][3]
+
+    band = 2 * np.sqrt(0.01 / 3 + 0.01 / 3)                                                  # 0.163
+    assert cell(rows) == f"-0.05 (tie: within ±{band:.2f}) vs spikenerf (1 of 5 baselines run)"
+    lower = [_row("tfi", "none", 24.0 + 0.1 * s, seed=s) for s in range(2)]                  # 24.05: beaten
+    assert cell([r for r in rows if r["method"] != "spikenerf"] + lower).startswith("+1.05 (met; 2 of 3 seeds) vs tfi")
+    one = [_row("spikenerf", "true maps", 25.09)]                                            # one seed: no band
+    assert cell(rows[:3] + one).startswith("+0.01 (met; 1 of 3 seeds) vs spikenerf")
+    assert make_protocol.tie_band([1.0], [1.0, 2.0]) is None
 
 
 def test_missing_counts_only_runs_at_the_default_iteration_count():
