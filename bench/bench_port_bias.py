@@ -152,25 +152,17 @@ def _rsir_curve(intensity: float, top: float, points: int):
     return ys, np.array([rsir_rate(y, intensity) for y in ys])
 
 
-def _sq_err(pred_lin: np.ndarray, gt_srgb: np.ndarray) -> np.ndarray:
-    """Per-pixel squared error in the evaluation's comparison space (prediction clipped, sRGB-encoded)."""
-    from spikegen.spikeio import linear_to_srgb
-
-    return (linear_to_srgb(np.clip(pred_lin, 0.0, 1.0)) - gt_srgb) ** 2
-
-
 def count_bin(gt_x: np.ndarray, intensity: float) -> np.ndarray:
     """Each pixel's bin of ``COUNT_EDGES`` by the count expected over the 256 frames, ``x I`` (0 for
     ``x I < 1``, ..., ``len(COUNT_EDGES) - 1`` for ``x I >= 16``)."""
     return np.searchsorted(np.asarray(COUNT_EDGES[1:], dtype=np.float64), gt_x * intensity, side="right")
 
 
-def _psnr(pred_lin: np.ndarray, gt_srgb: np.ndarray, mask: np.ndarray) -> float:
-    """The evaluation's PSNR of a linear prediction (clipped to [0, 1], sRGB-encoded) in ``mask``."""
+def _encode(pred_lin: np.ndarray) -> np.ndarray:
+    """A linear prediction in the evaluation's comparison space: clipped to [0, 1], sRGB-encoded."""
     from spikegen.spikeio import linear_to_srgb
-    from spikenerf.metrics import psnr
 
-    return psnr(linear_to_srgb(np.clip(pred_lin, 0.0, 1.0)), gt_srgb, mask)
+    return linear_to_srgb(np.clip(pred_lin, 0.0, 1.0))
 
 
 def run_row(run: Path, spreads=SPREADS) -> dict:
@@ -180,6 +172,7 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
     from spikegen.spikeio import linear_to_srgb, read_png, srgb_to_linear
     from spikenerf.data import load_dataset
     from spikenerf.eval import reference
+    from spikenerf.metrics import psnr
 
     run = Path(run)
     try:
@@ -199,11 +192,10 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
     height, width = (int(v) for v in metrics["resolution"])
     intensity = float(ds.intensity)
     pixel = pixel_of(sensor)
-    curves = {s: rate_loss_inverse(intensity, s, pixel) for s in spreads}
+    curves = {s: rate_loss_inverse(intensity, s, pixel) for s in dict.fromkeys((*spreads, BIN_SPREAD))}
     saved, undone, num, den, data = [], {s: [] for s in spreads}, 0.0, 0.0, []
     bins = len(COUNT_EDGES)
     pixels, se_saved, se_undone = np.zeros(bins), np.zeros(bins), np.zeros(bins)
-    bin_curve = rate_loss_inverse(intensity, BIN_SPREAD, pixel)
     for view in views:
         png = run / f"eval_{split}" / f"{view.name.replace('/', '_')}.png"
         if not png.is_file():
@@ -213,19 +205,24 @@ def run_row(run: Path, spreads=SPREADS) -> dict:
         _, gt_x, alpha = reference(ds, view, height, width)
         mask = alpha > 0
         gt = linear_to_srgb(gt_x)
-        saved.append(_psnr(pred, gt, mask))
+        as_saved = _encode(pred)
+        saved.append(psnr(as_saved, gt, mask))
         for s, (xs, hx) in curves.items():
-            undone[s].append(_psnr(np.interp(pred, xs, hx), gt, mask))
+            undone_s = _encode(np.interp(pred, xs, hx))
+            if s in undone:
+                undone[s].append(psnr(undone_s, gt, mask))
+            if s == BIN_SPREAD:
+                for_bins = undone_s
         b = count_bin(gt_x[mask], intensity)
         pixels += np.bincount(b, minlength=bins)
-        se_saved += np.bincount(b, weights=_sq_err(pred[mask], gt[mask]), minlength=bins)
-        se_undone += np.bincount(b, weights=_sq_err(np.interp(pred[mask], *bin_curve), gt[mask]), minlength=bins)
+        se_saved += np.bincount(b, weights=(as_saved[mask] - gt[mask]) ** 2, minlength=bins)
+        se_undone += np.bincount(b, weights=(for_bins[mask] - gt[mask]) ** 2, minlength=bins)
         num += float((pred[mask] * gt_x[mask]).sum())
         den += float((pred[mask] ** 2).sum())
         data.append((pred, gt, mask))
     gain = num / den if den > 0 else 1.0
     total = max(pixels.sum(), 1.0)
-    gained = [_psnr(p * gain, g, m) for p, g, m in data]
+    gained = [psnr(_encode(p * gain), g, m) for p, g, m in data]
     return {"kind": "run", "run": run.name, "dataset": Path(cfg["dataset"]).name, "sensor": sensor.name,
             "reset": sensor.reset, "pixel": pixel, "intensity": int(round(intensity)), "method": cfg["method"],
             "seed": int(cfg["seed"]), "iterations": int(metrics["iterations"]), "views": len(views),

@@ -328,10 +328,11 @@ def tie_band(a: list, b: list):
     return 2.0 * float(np.sqrt(np.var(a, ddof=1) / len(a) + np.var(b, ddof=1) / len(b)))
 
 
-def _verdict(diff, ok: bool, n: int) -> str:
+def _verdict(diff, ok: bool, n: int, word: str | None = None) -> str:
+    """``diff`` with its verdict (``word``, else met / not met) and the seed count where short of all."""
     if diff is None:
         return "–"
-    word = "met" if ok else "not met"
+    word = word or ("met" if ok else "not met")
     return f"{diff:+.2f} ({word}{'' if n >= len(SEEDS) else f'; {n} of {len(SEEDS)} seeds'})"
 
 
@@ -364,11 +365,8 @@ def targets(rows: list) -> list[str]:
             if base:
                 name, b, nb = max(base, key=lambda x: x[1])
                 band = tie_band(_values(rs, "spikelik", "true maps", i), _values(rs, name, KNOWLEDGE[name], i))
-                if band is not None and abs(d - b) <= band:
-                    best = f"{d - b:+.2f} (tie: within ±{band:.2f}" + ("" if min(nd, nb) >= len(SEEDS) else
-                                                                     f"; {min(nd, nb)} of {len(SEEDS)} seeds") + ")"
-                else:
-                    best = _verdict(d - b, d - b > 0, min(nd, nb))
+                tie = band is not None and abs(d - b) <= band
+                best = _verdict(d - b, d - b > 0, min(nd, nb), f"tie: within ±{band:.2f}" if tie else None)
                 best += f" vs {name}"
                 if len(base) < len(BASELINES):
                     best += f" ({len(base)} of {len(BASELINES)} baselines run)"
