@@ -53,6 +53,39 @@ def test_targets_margins_and_verdicts():
     assert [c.strip() for c in other.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]
 
 
+def test_the_oracle_of_another_sensor_stands_in_where_a_sensor_has_none():
+    """The oracle's datasets of one scene differ only in the spikes it never reads: a sensor without
+    oracle runs takes those of its own other intensities first, then another sensor's at the same
+    intensity, then at another; never those of another size or budget."""
+    def row(sensor, method, obj, intensity=64, **kw):
+        return dict(_row(method, "ground-truth images" if method == "oracle" else "true maps", obj,
+                         intensity=intensity, **kw), sensor=sensor)
+
+    def ceiling(rows, sensor, intensity):
+        line = next(line for line in make_protocol.targets(rows) if f"lego, {sensor}," in line
+                    and f"| i{intensity} |" in line and "3000 it" in line)
+        return [c.strip() for c in line.split("|")[1:-1]][5]
+
+    rows = [row(s, m, v, i) for s in ("paper", "rsir") for i in (16, 64)
+            for m, v in (("spikelik", 25.0), ("spikenerf-paper", 22.0))]
+    rows += [row("rsir", "oracle", 26.5, 64), row("rsir", "oracle", 27.5, 64, iterations=9000),
+             dict(row("rsir", "oracle", 30.0, 16), resolution=100)]
+    assert ceiling(rows, "rsir", 64) == "+4.50"
+    assert ceiling(rows, "rsir", 16) == "+4.50 (i64's oracle)"
+    assert ceiling(rows, "paper", 64) == "+4.50 (rsir i64's oracle)"   # not the 9000 or the 100 x 100 run
+    assert ceiling(rows, "paper", 16) == "+4.50 (rsir i64's oracle)"
+    rows += [row("rsir", "oracle", 25.5, 16)]
+    assert ceiling(rows, "paper", 16) == "+3.50 (rsir i16's oracle)"    # the same intensity first
+    rows += [row("paper", "oracle", 26.0, 64)]
+    assert ceiling(rows, "paper", 16) == "+4.00 (i64's oracle)"         # then the same sensor first
+    assert ceiling(rows, "paper", 64) == "+4.00"
+    rows += [row("rsir", "spikenerf-paper", 24.0, 16)]                 # rsir i16: port 23.0 mean, oracle 25.5
+    rows += [row("paper", "spikenerf-paper", 23.0, 16)]                # paper i16: port 22.5 mean, oracle 26.0
+    text = make_protocol.targets(rows)[-1]
+    assert "less than 3 dB above the port" in text and "lego, rsir, 400 x 400, 3000 it, i16" in text.split(".")[0]
+    assert "lego, paper, 400 x 400, 3000 it, i16 (the default 1.00 dB below the oracle)" in text.split(". It")[1]
+
+
 def test_a_margin_over_the_best_baseline_inside_the_seeds_noise_is_a_tie():
     rows = [_row("spikelik", "true maps", 25.0 + 0.1 * s, seed=s) for s in range(3)]       # 25.1, SD 0.1
     rows += [_row("spikenerf", "true maps", 25.05 + 0.1 * s, seed=s) for s in range(3)]     # 25.15, SD 0.1

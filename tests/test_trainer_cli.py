@@ -263,10 +263,11 @@ def test_oracle_learns_the_sphere_from_its_images_and_needs_them(dataset, tmp_pa
     assert r.exit_code == 2 and "no ground-truth image" in r.output and not (tmp_path / "bad").exists()
 
 
-def test_oracle_does_not_depend_on_the_intensity(tmp_path):
-    """The oracle reads the ground-truth images and poses, never the spikes: the same seed trains the
-    same field, to the bit, from datasets of one scene at two intensities (bench/make_protocol.py
-    lets one intensity's oracle runs stand for the others on this)."""
+def test_oracle_does_not_depend_on_the_intensity_or_the_sensor(tmp_path):
+    """The oracle reads the ground-truth images and poses, never the spikes or the sensor's maps: the
+    same seed trains the same field, to the bit, from datasets of one scene at two intensities and from
+    three sensors' datasets (bench/make_protocol.py lets one dataset's oracle runs stand for the others
+    on this)."""
     from spikegen.dataset import convert
     from spikenerf.eval import evaluate
 
@@ -277,7 +278,10 @@ def test_oracle_does_not_depend_on_the_intensity(tmp_path):
         frames.append({"file_path": f"./train/r_{k}", "transform_matrix": _pose(1.0 * k, 0.3).tolist()})
     write_json_atomic(src / "transforms_train.json", {"camera_angle_x": ANGLE_X, "frames": frames})
     folders = convert(src, tmp_path / "ds", [16, 64], sensor="rsir", progress=False)
-    assert len(folders) == 2 and (folders[0] / "train/r_0.dat").read_bytes() != (folders[1] / "train/r_0.dat").read_bytes()
+    folders += [convert(src, tmp_path / s, [64], sensor=s, progress=False)[0] for s in ("paper", "calibrated")]
+    spikes = [(f / "train/r_0.dat").read_bytes() for f in folders]
+    assert len(set(spikes)) == 4                                        # four different spike streams
+    assert len({(f / "sensor.npz").read_bytes() for f in folders[1:]}) == 3  # three sensors' maps
     fields, metrics = [], []
     for k, folder in enumerate(folders):
         run = tmp_path / f"oracle{k}"
@@ -285,11 +289,13 @@ def test_oracle_does_not_depend_on_the_intensity(tmp_path):
         ck = torch.load(run / "checkpoint.pt", weights_only=False)
         fields.append((ck["field"], ck["state"]))
         metrics.append(evaluate(run, progress=False))
-    (conf0, state0), (conf1, state1) = fields
-    assert conf0 == conf1 and state0.keys() == state1.keys()
+    conf0, state0 = fields[0]
     assert sum(torch.is_tensor(v) for v in state0.values()) >= 3  # the grid and the decoder's weights
-    assert all(torch.equal(v, state1[k]) if torch.is_tensor(v) else v == state1[k] for k, v in state0.items())
-    assert metrics[0]["psnr"] == metrics[1]["psnr"] and metrics[0]["per_view"] == metrics[1]["per_view"]
+    for conf1, state1 in fields[1:]:
+        assert conf0 == conf1 and state0.keys() == state1.keys()
+        assert all(torch.equal(v, state1[k]) if torch.is_tensor(v) else v == state1[k] for k, v in state0.items())
+    for m in metrics[1:]:
+        assert metrics[0]["psnr"] == m["psnr"] and metrics[0]["per_view"] == m["per_view"]
 
 
 def test_training_crops_the_grid_to_the_object(dataset, tmp_path):
