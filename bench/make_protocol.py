@@ -267,6 +267,43 @@ def scenes_table(rows: list) -> list[str]:
     return out
 
 
+def sequence_table(rows: list) -> list[str]:
+    """The paper's Table S6 shape: object PSNR of the methods trained from the first w frames, beside the same
+    runs from all 256 (w = 256), one table per data set, size, sensor, intensity and budget that has runs
+    from fewer frames, with the default's margin over the port at each w (seed means; seeds in brackets)."""
+    cells = defaultdict(list)
+    for r in rows:
+        cells[(r["resolution"], r["data"], r["sensor"], r["intensity"], _budget(r))].append(r)
+    out = []
+    for key in sorted(cells, key=lambda c: (-c[0], c[1], c[2], c[3], c[4])):
+        rs = cells[key]
+        ws = sorted({r["frames"] for r in rs if r["frames"]})
+        if not ws:
+            continue
+        res, data, sensor, i, budget = key
+        methods = sorted({r["method"] for r in rs if r["frames"] and r["knowledge"] == KNOWLEDGE.get(r["method"])},
+                         key=lambda m: METHODS.index(m) if m in METHODS else 99)
+        cols = ws + [0]
+
+        def obj(m, w):
+            return [r["metrics"]["psnr_object"] for r in rs if r["method"] == m and r["frames"] == w
+                    and r["knowledge"] == KNOWLEDGE.get(m) and r["metrics"].get("psnr_object") is not None]
+
+        out += [f"### {data}, {sensor}, {res} x {res}, i{i}, {_iters(budget)} iterations", "",
+                "| object PSNR | knows | " + " | ".join(f"w = {w or 256}" for w in cols) + " |",
+                "|---|---|" + "---|" * len(cols)]
+        for m in methods:
+            out.append(f"| {m} | {KNOWLEDGE.get(m)} | " + " | ".join(_stat(obj(m, w)) for w in cols) + " |")
+        if {"spikelik", "spikenerf-paper"} <= set(methods):
+            diffs = []
+            for w in cols:
+                a, b = obj("spikelik", w), obj("spikenerf-paper", w)
+                diffs.append(f"{np.mean(a) - np.mean(b):+.2f}" if a and b else "–")
+            out.append("| default − port | | " + " | ".join(diffs) + " |")
+        out.append("")
+    return out
+
+
 def iterations_note(rows: list) -> str:
     """Which iteration counts the rows of each resolution were run at, against the default."""
     out = []
@@ -542,6 +579,12 @@ def main() -> None:
     table_s2 = scenes_table(rows)
     if table_s2:
         lines += ["## The procedural scenes side by side (PSNR full / object, dB; seeds in brackets)", ""] + table_s2
+    table_s6 = sequence_table(rows)
+    if table_s6:
+        lines += ["## Sequence length (the paper's Table S6 shape: trained from the first w frames)", "",
+                  "`spikenerf train --frames w`: each train view's first w of its 256 frames, the rest unread; "
+                  "the same held-out views, iterations and seeds as the runs from all 256 (w = 256, from the "
+                  "tables above). Mean over seeds ± their SD (seeds in brackets).", ""] + table_s6
     if old:
         lines += [f"## Measured with the earlier trainer ({OLD_FIELD}; superseded, kept for the record)", ""]
         lines += measured(old)

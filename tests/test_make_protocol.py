@@ -86,6 +86,25 @@ def test_the_oracle_of_another_sensor_stands_in_where_a_sensor_has_none():
     assert "lego, paper, 400 x 400, 3000 it, i16 (the default 1.00 dB below the oracle)" in text.split(". It")[1]
 
 
+def test_sequence_table_sets_the_first_w_frames_beside_all_256():
+    rows = [dict(_row("spikelik", "true maps", 24.0 + w / 64 + 0.2 * s, seed=s), frames=w)
+            for w in (32, 64) for s in range(2)]                                   # 24.6, 25.1
+    rows += [dict(_row("spikenerf-paper", "true maps", 23.0), frames=32)]
+    rows += [_row("spikelik", "true maps", 26.0, seed=s) for s in range(3)]        # all 256 frames
+    rows += [_row("spikenerf-paper", "true maps", 25.5), _row("tfi", "none", 20.0)]
+    rows += [dict(_row("spikelik", "true maps", 30.0), frames=32, iterations=9000)]  # another budget
+    rows += [dict(_row("spikelik", "calibrated maps", 10.0), frames=32)]            # not the method's own maps
+    table = make_protocol.sequence_table(rows)
+    assert table[0] == "### lego, rsir, 400 x 400, i64, 3000 iterations"
+    assert table[2] == "| object PSNR | knows | w = 32 | w = 64 | w = 256 |"
+    assert table[4] == "| spikelik | true maps | 24.60 ± 0.14 (2) | 25.10 ± 0.14 (2) | 26.00 ± 0.00 (3) |"
+    assert table[5] == "| spikenerf-paper | true maps | 23.00 (1) | – | 25.50 (1) |"
+    assert table[6] == "| default − port | | +1.60 | – | +0.50 |"
+    assert not any(line.startswith("| tfi") for line in table)                      # no run from fewer frames
+    assert "9000 iterations" in table[8] and "| spikelik | true maps | 30.00 (1) | – |" in table[12]
+    assert make_protocol.sequence_table([_row("spikelik", "true maps", 26.0)]) == []
+
+
 def test_a_margin_over_the_best_baseline_inside_the_seeds_noise_is_a_tie():
     rows = [_row("spikelik", "true maps", 25.0 + 0.1 * s, seed=s) for s in range(3)]       # 25.1, SD 0.1
     rows += [_row("spikenerf", "true maps", 25.05 + 0.1 * s, seed=s) for s in range(3)]     # 25.15, SD 0.1
