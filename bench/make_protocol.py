@@ -583,8 +583,9 @@ def main() -> None:
     if table_s6:
         lines += ["## Sequence length (the paper's Table S6 shape: trained from the first w frames)", "",
                   "`spikenerf train --frames w`: each train view's first w of its 256 frames, the rest unread; "
-                  "the same held-out views, iterations and seeds as the runs from all 256 (w = 256, from the "
-                  "tables above). Mean over seeds ± their SD (seeds in brackets).", ""] + table_s6
+                  "the same held-out views and iterations as the runs from all 256 (w = 256, from the tables "
+                  "above). Mean over the seeds run ± their SD (the number of seeds in brackets; a column with "
+                  "fewer seeds than another is not a paired comparison).", ""] + table_s6
     if old:
         lines += [f"## Measured with the earlier trainer ({OLD_FIELD}; superseded, kept for the record)", ""]
         lines += measured(old)
