@@ -286,8 +286,7 @@ def sequence_table(rows: list) -> list[str]:
         cols = ws + [0]
 
         def obj(m, w):
-            return [r["metrics"]["psnr_object"] for r in rs if r["method"] == m and r["frames"] == w
-                    and r["knowledge"] == KNOWLEDGE.get(m) and r["metrics"].get("psnr_object") is not None]
+            return _values(rs, m, KNOWLEDGE.get(m), i, frames=w)
 
         out += [f"### {data}, {sensor}, {res} x {res}, i{i}, {_iters(budget)} iterations", "",
                 "| object PSNR | knows | " + " | ".join(f"w = {w or 256}" for w in cols) + " |",
@@ -295,11 +294,9 @@ def sequence_table(rows: list) -> list[str]:
         for m in methods:
             out.append(f"| {m} | {KNOWLEDGE.get(m)} | " + " | ".join(_stat(obj(m, w)) for w in cols) + " |")
         if {"spikelik", "spikenerf-paper"} <= set(methods):
-            diffs = []
-            for w in cols:
-                a, b = obj("spikelik", w), obj("spikenerf-paper", w)
-                diffs.append(f"{np.mean(a) - np.mean(b):+.2f}" if a and b else "–")
-            out.append("| default − port | | " + " | ".join(diffs) + " |")
+            pairs = [(obj("spikelik", w), obj("spikenerf-paper", w)) for w in cols]
+            out.append("| default − port | | " + " | ".join(f"{np.mean(a) - np.mean(b):+.2f}" if a and b else "–"
+                                                          for a, b in pairs) + " |")
         out.append("")
     return out
 
@@ -345,10 +342,11 @@ def measured(rows: list) -> list[str]:
 BASELINES = ("spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi")
 
 
-def _values(rows: list, method: str, knowledge: str, intensity: int, key: str = "psnr_object") -> list:
-    """One metric of one method's runs (one a seed) at one intensity, from all frames."""
+def _values(rows: list, method: str, knowledge: str, intensity: int, key: str = "psnr_object",
+            frames: int = 0) -> list:
+    """One metric of one method's runs (one a seed) at one intensity, from the first ``frames`` (0: all)."""
     return [r["metrics"][key] for r in rows if r["method"] == method and r["knowledge"] == knowledge
-            and r["intensity"] == intensity and r["frames"] == 0 and r["metrics"].get(key) is not None]
+            and r["intensity"] == intensity and r["frames"] == frames and r["metrics"].get(key) is not None]
 
 
 def _mean(rows: list, method: str, knowledge: str, intensity: int, key: str = "psnr_object"):
