@@ -134,10 +134,28 @@ def test_missing_counts_only_runs_at_the_default_iteration_count():
         assert "at 9000 iterations" in line
         return int(line.split(": ")[1].split(" of ")[0])
 
-    assert left(old) == left([]) == 63
-    assert left(old + new + part) == 61
+    assert left(old) == left([]) == 72
+    assert left(old + new + part) == 70
     note = make_protocol.iterations_note(old + new)
     assert "2 runs at the default 9000" in note and "3 at 3000" in note
+
+
+def test_missing_names_each_run_with_what_its_method_knows():
+    """The plan holds every method with its own knowledge and, on the lego, the default with calibrated maps:
+    a run with calibrated maps fills that slot only, and the line names what is left per method."""
+    true = [_row("spikelik", "true maps", 25.0, seed=s, intensity=i, iterations=9000) for s in range(3)
+            for i in (16, 32, 64)]
+    cal = [_row("spikelik", "calibrated maps", 25.0, seed=0, intensity=64, iterations=9000)]
+    tfi = [_row("tfi", "none", 20.0, seed=s, intensity=i, iterations=9000) for s in range(3) for i in (16, 32)]
+    line = next(x for x in make_protocol.missing(true + cal + tfi) if "lego, rsir, 400 x 400" in x)
+    assert line.split(": ")[1].startswith(f"{72 - 9 - 1 - 6} of 72 runs")
+    named = line.split("not yet run: ")[1].split("; ")
+    assert "spikelik with calibrated maps i16 (seeds 0, 1, 2), i32 (seeds 0, 1, 2), i64 (seeds 1, 2)" in named
+    assert "tfi i64 (seeds 0, 1, 2)" in named
+    assert not any(x.startswith("spikelik i") for x in named)  # the default on true maps: every run made
+    only_cal = next(x for x in make_protocol.missing(cal) if "lego, rsir, 400 x 400" in x)
+    assert ("spikelik i16 (seeds 0, 1, 2), i32 (seeds 0, 1, 2), i64 (seeds 0, 1, 2)"  # the true-maps slot: not filled
+            in only_cal.split("not yet run: ")[1].split("; "))
 
 
 def test_scenes_table_puts_the_procedural_scenes_side_by_side():
