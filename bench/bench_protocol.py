@@ -21,7 +21,9 @@ resumed from; its wall_seconds are this session's only; train_seconds add up ove
 host's: docs/trainer.md, so several runs can use one; untried there yet); their rows say ``jobs``. ``--start-within S``: no run starts after S seconds (for a machine lent
 for a fixed time). ``--calibrated`` adds, for every method that uses the sensor's maps, a run with the
 maps of ``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
-real camera has) instead of the dataset's true maps. No setting is chosen here: every method runs
+real camera has) instead of the dataset's true maps, fitted for the camera's own response (``--kind``: the
+linear Eqs. S2-S6 for the integrate-and-fire sensors, the rsir fit for ``rsir``; rows say which in
+``calibration_fit``, and rows without it were made with Eqs. S2-S6). No setting is chosen here: every method runs
 with the trainer's defaults. ``oracle`` (not a spike method; it knows the ground-truth images of the
 train views) is the same field fitted to those images: what the field can represent.
 """
@@ -58,7 +60,7 @@ KNOWLEDGE = {"spikelik": "true maps", "spikenerf-paper": "true maps", "spikenerf
 # were made with the preset of commits dfecb33 to 76ab7ef: shot noise of N_e = 1.383e4, no jitter.
 LEGACY_CALIBRATED = {"electrons": 13829.406571440471, "threshold_jitter": 0.0}
 KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed", "iterations", "frames", "field",
-       "batch_rays")
+       "batch_rays", "calibration_fit")
 # rays a training step (spikenerf train --batch-rays): rows without the key were made at the trainer's default
 DEFAULT_RAYS = TrainConfig.__dataclass_fields__["batch_rays"].default
 CAL_INTENSITY, CAL_FRAMES = 64.0, 2000  # the simulated calibration recordings: a dark and two flats
@@ -91,16 +93,24 @@ def dataset(data: str, sensor: str, intensity: int, args) -> Path:
     return folder
 
 
-def calibration(sensor: str, args) -> Path:
-    """``spikegen calibrate`` on simulated dark and flat recordings of the dataset's camera (the
-    same maps as its conversion: seed 0): the maps a user of a real camera has, not the true ones."""
+def sensor_kind(sensor: str) -> str:
+    """The response of a preset's camera (``if`` or ``rsir``): what its calibration is fitted for."""
+    from spikegen.presets import get_sensor
+
+    return get_sensor(sensor, 8, 8, 0).kind
+
+
+def calibration(sensor: str, args, fit: str = "if") -> Path:
+    """``spikegen calibrate --kind FIT`` on simulated dark and flat recordings of the dataset's camera
+    (the same maps as its conversion: seed 0): the maps a user of a real camera has, not the true ones.
+    The recordings are the same whatever the fit (seeded)."""
     import numpy as np
 
     from spikegen.presets import get_sensor
     from spikegen.sensor import simulate
     from spikegen.spikeio import write_spikes
 
-    prefix = args.out / f"calibration_{sensor}_{args.resolution}"
+    prefix = args.out / (f"calibration_{sensor}_{args.resolution}" + ("" if fit == "if" else f"_{fit}fit"))
     if prefix.with_suffix(".json").is_file():
         return prefix.with_suffix(".json")
     res = args.resolution
@@ -112,7 +122,7 @@ def calibration(sensor: str, args) -> Path:
         paths[x] = args.out / f"calibration_{sensor}_{res}_x{x:g}.npz"
         write_spikes(paths[x], spikes)
     flats = [f"--flat={x * CAL_INTENSITY / 256:g}={paths[x]}" for x in CAL_FLATS_X]
-    _run(["spikegen", "calibrate", "--dark", str(paths[0.0]), *flats, "--out", str(prefix)])
+    _run(["spikegen", "calibrate", "--dark", str(paths[0.0]), *flats, "--out", str(prefix), "--kind", fit])
     return prefix.with_suffix(".json")
 
 
@@ -134,9 +144,16 @@ def sensor_name(row: dict) -> str:
     return f"calibrated (N_e {m['electrons']:.4g}{jitter})"
 
 
+def calibration_fit(row: dict) -> str | None:
+    """The response a row's calibrated maps were fitted for (rows from before the key: Eqs. S2-S6,
+    ``if``); None for a row that does not use calibrated maps."""
+    return row.get("calibration_fit", "if") if row["knowledge"] == "calibrated maps" else None
+
+
 def row_key(row: dict) -> tuple:
     return tuple(row.get(k, OLD_FIELD) if k == "field" else sensor_name(row) if k == "sensor" else
-                 row.get(k, DEFAULT_RAYS) if k == "batch_rays" else row[k] for k in KEY)
+                 row.get(k, DEFAULT_RAYS) if k == "batch_rays" else calibration_fit(row) if k == "calibration_fit"
+                 else row[k] for k in KEY)
 
 
 def done_keys(results: Path = RESULTS) -> set:
@@ -147,11 +164,13 @@ def done_keys(results: Path = RESULTS) -> set:
 
 def run_one(folder: Path, cell: dict, args) -> dict:
     """Train and evaluate one run; the results line."""
-    # (the folder's name: the key's values; the rays a step only where not the default, so that the
-    # folders of runs from before that key are found again and resume)
-    name = "_".join(str(cell[k]) for k in KEY if k != "batch_rays").replace(" ", "-").replace(",", "")
-    rays = cell["batch_rays"]
-    run = args.out / f"runs_{args.resolution}" / (name + ("" if rays == DEFAULT_RAYS else f"_rays{rays}"))
+    # (the folder's name: the key's values; the rays a step and the calibration's fit only where not the
+    # default, so that the folders of runs from before those keys are found again and resume)
+    name = "_".join(str(cell[k]) for k in KEY if k not in ("batch_rays", "calibration_fit"))
+    name = name.replace(" ", "-").replace(",", "")
+    rays, fit = cell["batch_rays"], calibration_fit(cell)
+    run = args.out / f"runs_{args.resolution}" / (name + ("" if rays == DEFAULT_RAYS else f"_rays{rays}")
+                                                  + ("" if fit in (None, "if") else f"_{fit}fit"))
     cmd = ["spikenerf", "train", str(folder), "--method", cell["method"], "--out", str(run), "--device",
            args.device, "--seed", str(cell["seed"]), "--quiet", "--iters", str(cell["iterations"])]
     if cell["frames"]:
@@ -159,7 +178,7 @@ def run_one(folder: Path, cell: dict, args) -> dict:
     if rays != DEFAULT_RAYS:
         cmd += ["--batch-rays", str(rays)]
     if cell["knowledge"] == "calibrated maps":
-        cmd += ["--sensor-maps", str(calibration(cell["sensor"], args))]
+        cmd += ["--sensor-maps", str(calibration(cell["sensor"], args, fit))]
     resumed = _checkpoint_iteration(run)
     load0, t0 = os.getloadavg()[0], time.perf_counter()
     _run(cmd)
@@ -217,7 +236,9 @@ def cells(args):
         yield data, sensor, i, {"data": data, "sensor": sensor, "intensity": i, "method": method,
                                 "knowledge": knows, "resolution": args.resolution, "seed": seed,
                                 "iterations": args.iters or default_iters(args.resolution, args.resolution),
-                                "frames": args.frames, "field": FIELD, "batch_rays": args.batch_rays}
+                                "frames": args.frames, "field": FIELD, "batch_rays": args.batch_rays,
+                                **({"calibration_fit": args.calibration_kind or sensor_kind(sensor)}
+                                   if knows == "calibrated maps" else {})}
 
 
 def main() -> None:
@@ -236,6 +257,8 @@ def main() -> None:
                     "--batch-rays); stated in every row")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
+    ap.add_argument("--calibration-kind", choices=("if", "rsir"), default=None, help="the response the "
+                    "calibrated maps are fitted for (spikegen calibrate --kind; default: the camera's own)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--jobs", type=int, default=1, help="runs trained at once, each its own process (a GPU is busy "
                     "about a third of a training step: several runs can use one); rows made with more than one say so "
@@ -304,7 +327,7 @@ def run_plan(todo: list, args) -> None:
                     if (data, sensor, i) not in folders:
                         folders[(data, sensor, i)] = dataset(data, sensor, i, args)
                     if cell["knowledge"] == "calibrated maps":
-                        calibration(sensor, args)
+                        calibration(sensor, args, cell["calibration_fit"])
                 except SystemExit as e:  # a dataset that could not be made: no run starts after it
                     failure = e
                     break

@@ -4,6 +4,7 @@
 """
 from __future__ import annotations
 
+import functools
 import itertools
 import json
 from collections import Counter, defaultdict
@@ -19,9 +20,12 @@ OUT = HERE / "PROTOCOL.md"
 INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
 from bench_protocol import (DEFAULT_RAYS, FIELD, KEY, KNOWLEDGE, METHODS, OLD_FIELD,  # noqa: E402 (the runner's names)
-                            row_key, sensor_model, sensor_name)
+                            calibration_fit, row_key, sensor_kind, sensor_model, sensor_name)
 from spikenerf.config import default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
 
+# Calibrated maps fitted with another response than the camera's own (Eqs. S2-S6 on the rsir camera, the rows
+# made before the rsir fit): their own row, outside the plan and the third target.
+MISFIT = "calibrated maps, linear fit"
 SPIKE_METHODS = [m for m in METHODS if m != "oracle"]  # the plan's runs (the oracle is a reference, not planned)
 # A planned run is a method with what it knows: each spike method with its own knowledge, and on the real lego
 # also the default with calibrated maps (the third target compares it with the default on true maps).
@@ -77,7 +81,10 @@ installed locally.
 
 **What each method knows** of the camera's fixed pattern: *true maps* = the dataset's own R and
 dark current (sensor.json); *calibrated maps* = those of `spikegen calibrate` on simulated dark and
-flat recordings of the same camera; *none* = it assumes R = 1 or reconstructs images from the
+flat recordings of the same camera, fitted for its response (`--kind`: Eqs. S2-S6 for the linear
+integrate-and-fire sensors, the rsir fit for `rsir`); *calibrated maps, linear fit* = Eqs. S2-S6 on the
+`rsir` camera, whose response is not linear (rows from before the rsir fit, kept as their own rows:
+docs/trainer.md); *none* = it assumes R = 1 or reconstructs images from the
 spikes. A real user has a calibration, not the true maps. `oracle` is not a spike method: the same
 field fitted to the train views' ground-truth images (it knows them), a reference for what the field
 can represent.
@@ -94,7 +101,19 @@ def load(path: Path = RESULTS) -> list:
     if not path.is_file():
         return []
     rows = [json.loads(line) for line in path.read_text().splitlines() if line.strip()]
-    return [{**r, "sensor": sensor_name(r)} for r in rows]
+    return [{**r, "sensor": sensor_name(r), "knowledge": _knowledge(r)} for r in rows]
+
+
+@functools.lru_cache(maxsize=None)
+def _kind(sensor: str) -> str:
+    return sensor_kind(sensor)
+
+
+def _knowledge(r: dict) -> str:
+    """What the row's method knew, as the tables say it: MISFIT for calibrated maps fitted for another
+    response than the camera's own."""
+    fit = calibration_fit(r)
+    return MISFIT if fit is not None and fit != _kind(r["sensor"]) else r["knowledge"]
 
 
 def _rays(r: dict) -> int:

@@ -379,3 +379,34 @@ def test_error_by_count_averages_the_bins_and_says_where_the_excess_is():
                                              run("spikelik", 0, (2e-4, 1e-4), (2e-4, 1e-4))])
     assert lines[-2].endswith("paper i16: +3.00 in all, -1.00 in the 25.0 % of object pixels expecting under one "
                               "spike, the largest part at ≥ 1 (+4.00).")
+
+
+def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path):
+    """Calibrated maps are fitted for the camera's own response (bench_protocol: --kind rsir on the rsir
+    camera, Eqs. S2-S6 on the others); rows from before the key were made with Eqs. S2-S6. On rsir those
+    old rows are another run (key, folder) and another row of the tables, outside the third target."""
+    import argparse
+
+    import bench_protocol
+    base = {**_row("spikelik", "calibrated maps", 24.0, iterations=9000), "field": bench_protocol.FIELD}
+    fitted = {**base, "calibration_fit": "rsir", "metrics": {"psnr_object": 24.9}}
+    assert bench_protocol.row_key(base) != bench_protocol.row_key(fitted)
+    assert bench_protocol.row_key({**base, "calibration_fit": "if"}) == bench_protocol.row_key(base)
+    true = {**base, "knowledge": "true maps", "metrics": {"psnr_object": 25.0}}
+    assert bench_protocol.calibration_fit(true) is None
+    paper = {**base, "sensor": "paper"}
+    path = tmp_path / "rows.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in (base, fitted, true, paper)))
+    rows = make_protocol.load(path)
+    assert [r["knowledge"] for r in rows] == [make_protocol.MISFIT, "calibrated maps", "true maps", "calibrated maps"]
+    line = next(x for x in make_protocol.targets(rows[:3]) if "| i64 |" in x)
+    assert [c.strip() for c in line.split("|")[1:-1]][4] == "-0.10 (met; 1 of 3 seeds)"  # 24.9, not 24.0
+    assert any(make_protocol.MISFIT in x and "24.00" in x for x in make_protocol.table(rows[:3], "psnr_object", "m"))
+    # the runner asks for the camera's own fit, and --calibration-kind overrides it
+    args = argparse.Namespace(data=["lego"], sensors=["rsir", "paper"], intensities=[64], methods=["spikelik"],
+                              seeds=[0], calibrated=True, resolution=100, iters=0, frames=0, batch_rays=2048,
+                              calibration_kind=None)
+    fits = {(c["sensor"], c.get("calibration_fit")) for *_, c in bench_protocol.cells(args)}
+    assert fits == {("rsir", None), ("rsir", "rsir"), ("paper", None), ("paper", "if")}
+    args.calibration_kind = "if"
+    assert {c.get("calibration_fit") for *_, c in bench_protocol.cells(args)} == {None, "if"}

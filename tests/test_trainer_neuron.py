@@ -99,3 +99,18 @@ def test_rsir_rate_has_gradients():
     x = torch.tensor([0.2, 0.8], requires_grad=True)
     neuron.rsir_rate(x, 32, torch.ones(2), torch.full((2,), 0.004)).sum().backward()
     assert torch.all(x.grad > 0)
+
+
+def test_rsir_rate_is_the_generators_mean_charge():
+    """One sensor model: the trainer's differentiable rsir rate and the generator's rsir_mean_charge
+    (which spikegen calibrate --kind rsir inverts) agree to 1e-9 spikes a frame (the trainer keeps the
+    Poisson mean above 1e-8, so it is not exact in the dark)."""
+    from spikegen.sensor import rsir_mean_charge
+
+    resp = np.linspace(0.6, 1.6, 9)
+    dark = np.concatenate([[0.0], np.linspace(0.001, 0.02, 8)])
+    for x, intensity in ((0.0, 64), (0.05, 16), (0.25, 64), (0.75, 32), (1.0, 64)):
+        ours = neuron.rsir_rate(torch.full((9,), x, dtype=torch.float64), intensity, torch.tensor(resp),
+                                torch.tensor(dark)).numpy()
+        gen = rsir_mean_charge(x * intensity * 255 / 256, resp, dark)
+        np.testing.assert_allclose(ours, gen, rtol=1e-7, atol=1e-9)

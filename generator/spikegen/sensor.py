@@ -675,3 +675,32 @@ def rsir_charge(xt: np.ndarray, intensity: float, R: np.ndarray, delta: np.ndarr
     Dpp = np.maximum(Dp + rng.random(xt.shape), 0.0)
     with np.errstate(divide="ignore"):
         return np.where(np.isfinite(Dpp), 1.0 / (Dpp + 1.0), 0.0)
+
+
+def rsir_mean_charge(mean_gray: float, R: np.ndarray, delta: np.ndarray) -> np.ndarray:
+    """Mean of :func:`rsir_charge` per frame (= spikes per frame) at a constant mean gray level
+    ``m = I X 255/256``, over the Poisson gray level ``v`` and the uniform noise ``U``.
+
+    The mean over ``U`` of ``1 / (D' + U + 1)`` is ``ln((D' + 2) / (D' + 1))``; ``v = 0`` gives
+    ``D' = 1 / delta`` (charge 0 where ``delta = 0``). The Poisson sum runs to ``m + 6 sqrt(m) + 6``.
+    The trainer's differentiable mirror is ``spikenerf.neuron.rsir_rate`` (tested to agree).
+    """
+    R, delta = np.broadcast_arrays(np.asarray(R, np.float64), np.asarray(delta, np.float64))
+    m = float(mean_gray)
+    if m < 0:
+        raise ValueError("the mean gray level must be >= 0")
+    v = np.arange(0, int(m + 6.0 * m ** 0.5 + 6) + 1, dtype=np.float64)
+    log_fact = np.concatenate([[0.0], np.cumsum(np.log(v[1:]))])
+    pmf = np.exp(v * np.log(m) - m - log_fact) if m > 0 else (v == 0).astype(np.float64)
+    D = np.maximum(255.0 / np.maximum(v[1:], 1.0) - 1.0, 0.0)
+    out = np.empty(R.shape, np.float64)
+    flat_R, flat_d, flat_out = R.reshape(-1), delta.reshape(-1), out.reshape(-1)
+    for s in range(0, flat_R.size, 16384):  # [pixels, gray levels] a block at a time
+        r, d = flat_R[s:s + 16384, None], flat_d[s:s + 16384, None]
+        Dp = D / (r + D * d)
+        lit = np.log((Dp + 2.0) / (Dp + 1.0)) @ pmf[1:]
+        with np.errstate(divide="ignore"):
+            a0 = 1.0 / d[:, 0] + 1.0
+        dark = np.where(d[:, 0] > 0, np.log1p(1.0 / a0), 0.0)
+        flat_out[s:s + 16384] = lit + pmf[0] * dark
+    return out

@@ -36,8 +36,12 @@ def _flat(text: str):
 @click.option("--size", default=None, metavar="WxH", help="Frame size of .dat recordings.")
 @click.option("--out", "prefix", required=True, type=click.Path(path_type=Path),
               help="Writes PREFIX.json + PREFIX.npz (a sensor usable as --sensor PREFIX.json).")
-def calibrate(dark_path, flats, size, prefix):
-    """Responsivity and dark current from dark and flat-field recordings (Eqs. S2-S6)."""
+@click.option("--kind", type=click.Choice(["if", "rsir"]), default="if", show_default=True,
+              help="The camera's response: if (linear integrate-and-fire, Eqs. S2-S6) or rsir (the paper's "
+                   "reference generator: R and its dark term fitted through its exact mean charge, the scale of LUX "
+                   "with them).")
+def calibrate(dark_path, flats, size, prefix, kind):
+    """Responsivity and dark current from dark and flat-field recordings (Eqs. S2-S6, or the rsir fit)."""
     from ..sensorfile import save_sensor
     from .calibrate import calibrate as run
 
@@ -47,13 +51,16 @@ def calibrate(dark_path, flats, size, prefix):
         raise InputError("--flat: two recordings at the same illuminance; give two different LUX values")
     dark = read_spikes(dark_path, wh)
     streams = {lux: read_spikes(p, wh) for lux, p in parsed.items()}
-    cal = run(dark, streams)
+    cal = run(dark, streams, kind=kind)
     json_path, npz_path = save_sensor(cal.sensor(name=Path(prefix).name), prefix)
     click.echo(f"wrote {json_path} and {npz_path}")
     click.echo(f"reference pixel (row, col) {cal.reference_pixel}: response {cal.reference_vs_median:.4f} x median; "
                f"R median 1, 5-95 % {np.percentile(cal.responsivity, 5):.3f}-{np.percentile(cal.responsivity, 95):.3f}")
     click.echo(f"dark current median {np.median(cal.dark_lux):.4g} lux-eq ({np.median(cal.dark_rate):.4g} spikes/frame); "
                f"lux_to_rate {cal.lux_to_rate:.6g} spikes/frame/lux")
+    if cal.flat_check is not None:
+        click.echo(f"check: the {cal.flats_lux[0]:g} lux flat (not fitted) fires {cal.flat_check:.4f} x the model's rate "
+                   "(median over pixels)")
 
 
 @click.command()
