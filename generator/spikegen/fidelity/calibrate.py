@@ -45,7 +45,7 @@ BISECTIONS = 48  # halvings of a log-scale bracket of 1e-3..1e3: 5e-14 relative 
 @dataclass
 class Calibration:
     responsivity: np.ndarray  # R [H, W], median 1
-    dark_lux: np.ndarray  # L_d [H, W], lux-equivalent
+    dark_lux: np.ndarray  # L_d [H, W], lux-equivalent (rsir: delta / k, so that dark_rate is delta)
     lux_to_rate: float
     reference_pixel: tuple  # (row, col) of the paper's reference pixel m
     reference_vs_median: float  # R of pixel m relative to the median (before normalising, for "if")
@@ -169,7 +169,8 @@ def fit_rsir(r_d, r_1, r_2, L1: float, L2: float, source: str = "") -> Calibrati
         m = 255.0 * k * L2
         return _bisect(lambda R: rsir_mean_charge(m, R, d) - r2, np.full(r2.shape, 1e-3), np.full(r2.shape, 1e3))
 
-    # median R = 1 <=> half the pixels fire above what R = 1 gives: one bisection on k (decreasing in k)
+    # median R = 1 <=> half the pixels fire above what R = 1 gives: one bisection on k (the median of
+    # r2 minus that rate falls as k grows)
     ones = np.ones_like(r2)
     k = float(_bisect(lambda k: -np.median(r2 - rsir_mean_charge(255.0 * float(k) * L2, ones, d)),
                       np.array(1e-3 / L2), np.array(1.0 / L2)))
