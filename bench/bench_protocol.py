@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import argparse
 import datetime
+import functools
 import itertools
 import json
 import math
@@ -40,6 +41,7 @@ import sys
 import time
 from pathlib import Path
 
+from spikegen.sensor import KINDS
 from spikenerf.config import TrainConfig, default_iters
 
 REPO = Path(__file__).resolve().parents[1]
@@ -93,8 +95,10 @@ def dataset(data: str, sensor: str, intensity: int, args) -> Path:
     return folder
 
 
+@functools.lru_cache(maxsize=None)
 def sensor_kind(sensor: str) -> str:
-    """The response of a preset's camera (``if`` or ``rsir``): what its calibration is fitted for."""
+    """The response of a preset's camera (``if`` or ``rsir``): what its calibration is fitted for (loaded
+    once a sensor: cells() and make_protocol ask per run)."""
     from spikegen.presets import get_sensor
 
     return get_sensor(sensor, 8, 8, 0).kind
@@ -103,7 +107,7 @@ def sensor_kind(sensor: str) -> str:
 def calibration(sensor: str, args, fit: str = "if") -> Path:
     """``spikegen calibrate --kind FIT`` on simulated dark and flat recordings of the dataset's camera
     (the same maps as its conversion: seed 0): the maps a user of a real camera has, not the true ones.
-    The recordings are the same whatever the fit (seeded)."""
+    The recordings are the same whatever the fit (seeded), so one already made is not made again."""
     import numpy as np
 
     from spikegen.presets import get_sensor
@@ -114,13 +118,15 @@ def calibration(sensor: str, args, fit: str = "if") -> Path:
     if prefix.with_suffix(".json").is_file():
         return prefix.with_suffix(".json")
     res = args.resolution
-    camera = get_sensor(sensor, res, res, 0).sized(res, res)
+    camera = None
     paths = {}
     for k, x in enumerate((0.0, *CAL_FLATS_X)):
-        spikes = simulate(np.full((1, res, res), x, np.float32), CAL_INTENSITY, camera, frames=CAL_FRAMES,
-                          seed=1000 + k)
         paths[x] = args.out / f"calibration_{sensor}_{res}_x{x:g}.npz"
-        write_spikes(paths[x], spikes)
+        if paths[x].is_file():  # written atomically: a file there is a whole recording
+            continue
+        camera = camera or get_sensor(sensor, res, res, 0).sized(res, res)
+        write_spikes(paths[x], simulate(np.full((1, res, res), x, np.float32), CAL_INTENSITY, camera,
+                                        frames=CAL_FRAMES, seed=1000 + k))
     flats = [f"--flat={x * CAL_INTENSITY / 256:g}={paths[x]}" for x in CAL_FLATS_X]
     _run(["spikegen", "calibrate", "--dark", str(paths[0.0]), *flats, "--out", str(prefix), "--kind", fit])
     return prefix.with_suffix(".json")
@@ -257,7 +263,7 @@ def main() -> None:
                     "--batch-rays); stated in every row")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
-    ap.add_argument("--calibration-kind", choices=("if", "rsir"), default=None, help="the response the "
+    ap.add_argument("--calibration-kind", choices=KINDS, default=None, help="the response the "
                     "calibrated maps are fitted for (spikegen calibrate --kind; default: the camera's own)")
     ap.add_argument("--device", default="auto")
     ap.add_argument("--jobs", type=int, default=1, help="runs trained at once, each its own process (a GPU is busy "

@@ -4,7 +4,6 @@
 """
 from __future__ import annotations
 
-import functools
 import itertools
 import json
 from collections import Counter, defaultdict
@@ -104,16 +103,11 @@ def load(path: Path = RESULTS) -> list:
     return [{**r, "sensor": sensor_name(r), "knowledge": _knowledge(r)} for r in rows]
 
 
-@functools.lru_cache(maxsize=None)
-def _kind(sensor: str) -> str:
-    return sensor_kind(sensor)
-
-
 def _knowledge(r: dict) -> str:
     """What the row's method knew, as the tables say it: MISFIT for calibrated maps fitted for another
     response than the camera's own."""
     fit = calibration_fit(r)
-    return MISFIT if fit is not None and fit != _kind(r["sensor"]) else r["knowledge"]
+    return MISFIT if fit is not None and fit != sensor_kind(r["sensor"]) else r["knowledge"]
 
 
 def _rays(r: dict) -> int:

@@ -115,8 +115,11 @@ def calibrate(dark: np.ndarray, flats: dict, source: str = "", kind: str = "if")
                              "record it longer or brighter")
     if np.median(r_1) <= np.median(r_d):
         raise InputError(f"{source}the flat at {L1:g} lux fires no faster than the dark recording")
-    if kind == "rsir":
-        return fit_rsir(r_d, r_1, r_2, L1, L2, source)
+    return (fit_rsir if kind == "rsir" else fit_linear)(r_d, r_1, r_2, L1, L2, source)
+
+
+def fit_linear(r_d, r_1, r_2, L1: float, L2: float, source: str = "") -> Calibration:
+    """Eqs. S2-S6 (module doc) on the rates of a dark and two flats."""
     dark_lux = dark_equivalent_lux(r_d, r_1, L1)
     resp_raw = r_2 / (L2 + dark_lux)  # 1 / ((L_2 + L_d) T_2): lux_to_rate * R
     m = reference_pixel(resp_raw)
@@ -163,18 +166,14 @@ def fit_rsir(r_d, r_1, r_2, L1: float, L2: float, source: str = "") -> Calibrati
         raise InputError(f"{source}the dark recording fires at {float(r_d.max()):.3f} spikes/frame in some pixel: "
                          "more than an rsir pixel can in the dark (ln 2); is the lens covered?")
     delta = rsir_delta(r_d)
-    shape, r2, d = r_2.shape, r_2.reshape(-1), delta.reshape(-1)
-
-    def resp_at(k: float, r2=r2, d=d) -> np.ndarray:
-        m = 255.0 * k * L2
-        return _bisect(lambda R: rsir_mean_charge(m, R, d) - r2, np.full(r2.shape, 1e-3), np.full(r2.shape, 1e3))
-
+    r2, d = r_2.reshape(-1), delta.reshape(-1)
     # median R = 1 <=> half the pixels fire above what R = 1 gives: one bisection on k (the median of
     # r2 minus that rate falls as k grows)
     ones = np.ones_like(r2)
     k = float(_bisect(lambda k: -np.median(r2 - rsir_mean_charge(255.0 * float(k) * L2, ones, d)),
                       np.array(1e-3 / L2), np.array(1.0 / L2)))
-    R = resp_at(k).reshape(shape)
+    R = _bisect(lambda R: rsir_mean_charge(255.0 * k * L2, R, d) - r2, np.full(r2.shape, 1e-3),
+                np.full(r2.shape, 1e3)).reshape(r_2.shape)
     model_1 = rsir_mean_charge(255.0 * k * L1, R, delta)
     m = reference_pixel(R)
     return Calibration(R, delta / k, k, m, float(R[m]), (L1, L2), kind="rsir",

@@ -10,6 +10,7 @@ import click
 import numpy as np
 
 from ..errors import InputError
+from ..sensor import KINDS
 from ..spikeio import parse_size, read_radiance, read_spikes, read_spikes_packed, write_json_atomic
 
 
@@ -36,7 +37,7 @@ def _flat(text: str):
 @click.option("--size", default=None, metavar="WxH", help="Frame size of .dat recordings.")
 @click.option("--out", "prefix", required=True, type=click.Path(path_type=Path),
               help="Writes PREFIX.json + PREFIX.npz (a sensor usable as --sensor PREFIX.json).")
-@click.option("--kind", type=click.Choice(["if", "rsir"]), default="if", show_default=True,
+@click.option("--kind", type=click.Choice(KINDS), default="if", show_default=True,
               help="The camera's response: if (linear integrate-and-fire, Eqs. S2-S6) or rsir (the paper's "
                    "reference generator: R and its dark term fitted through its exact mean charge, the scale of LUX "
                    "with them).")
