@@ -229,13 +229,16 @@ def test_learning_rate_factor_decays_to_the_fraction_asked():
 
 @pytest.mark.parametrize("option, value, key, bad", [("--lr-grid", "0.3", "lr_grid", ("0",)),
                                                      ("--lr-decay", "0.5", "lr_decay", ("0", "1.5")),
-                                                     ("--stop-transmittance", "0", "stop_transmittance", ("-1", "1.5"))])
+                                                     ("--stop-transmittance", "0", "stop_transmittance", ("-1", "1.5")),
+                                                     ("--step-ratio", "1", "step_ratio", ("0", "3"))])
 def test_run_options_from_the_command_line_and_resume_guard(dataset, tmp_path, option, value, key, bad):
     run = tmp_path / "lr"
     args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
     res = CliRunner().invoke(main, args + ["--iters", "3", option, value])
     assert res.exit_code == 0, res.output
     assert json.loads((run / "config.json").read_text())[key] == float(value)
+    if key == "step_ratio":  # the field samples its rays at that step (render.py reads it from the field)
+        assert torch.load(run / "checkpoint.pt", weights_only=False)["field"]["step_ratio"] == float(value)
     res = CliRunner().invoke(main, args + ["--iters", "6"])  # the default would change the run's schedule
     assert res.exit_code == 2 and f"{key}={value}" in res.output and "Traceback" not in res.output
     for v in bad:

@@ -75,6 +75,9 @@ def main():
 @click.option("--stop-transmittance", default=TrainConfig.stop_transmittance, show_default=True,
               type=click.FloatRange(min=0, max=1),
               help="Early ray termination: samples a ray reaches with less transmittance are not rendered (0 = none).")
+@click.option("--step-ratio", default=TrainConfig.step_ratio, show_default=True,
+              type=click.FloatRange(min=0.1, max=2),
+              help="The sample step along a ray, in voxels of the current grid.")
 @click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),
               help="Weight of the total-variation (smoothness) prior on the grids.")
 @click.option("--tv-points", default=TrainConfig.tv_points, show_default=True, type=click.IntRange(min=0),
@@ -89,7 +92,7 @@ def main():
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, windows, sensor_maps, out, seed, batch_rays, lr_grid,
           lr_decay, sh_degree,
-          grid_final, fit_box, space, stop_transmittance, tv_weight, tv_points, lazy_above, checkpoint_every,
+          grid_final, fit_box, space, stop_transmittance, step_ratio, tv_weight, tv_points, lazy_above, checkpoint_every,
           do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
@@ -100,7 +103,7 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
                       frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
                       sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, stop_transmittance=stop_transmittance,
-                      tv_weight=tv_weight, tv_points=tv_points, space=space, lazy_above=lazy_above,
+                      step_ratio=step_ratio, tv_weight=tv_weight, tv_points=tv_points, space=space, lazy_above=lazy_above,
                       checkpoint_every=checkpoint_every,
                       sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
                       else "")

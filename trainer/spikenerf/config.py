@@ -49,6 +49,8 @@ class TrainConfig:
     lr_decay: float = 0.1  # the learning rates decay exponentially to this fraction of their start over the run
     grid_start: int = 32
     grid_final: int = 0  # 0 = chosen from the image size
+    # the sample step along a ray in voxels of the current grid (model.GridField.step_ratio)
+    step_ratio: float = 0.5
     upsample_at: tuple = (0.1, 0.2, 0.3)  # fractions of iters at which the grid grows
     fit_box: bool = True  # at each growth (from occupancy_after on) crop the grid to the occupied box first
     occupancy_every: int = 50

@@ -63,13 +63,13 @@ def make_field(cfg: TrainConfig, width: int, space: ndc.NDC | None = None) -> Gr
     corner moved out to the next whole voxel)."""
     if space is None:
         return GridField(grid_size=cfg.grid_start, final_size=final_grid(cfg, width), sh_degree=cfg.sh_degree,
-                         sh_scale=cfg.sh_scale)
+                         sh_scale=cfg.sh_scale, step_ratio=cfg.step_ratio)
     lo, hi = np.array(space.box)
     voxel = 2.0 / (cfg.grid_start - 1)
     dims = [int(math.ceil((h - l) / voxel - 1e-6)) + 1 for l, h in zip(lo, hi)]
     aabb = [lo.tolist(), (lo + voxel * (np.array(dims) - 1)).tolist()]
     return GridField(grid_size=cfg.grid_start, final_size=final_grid(cfg, width), sh_degree=cfg.sh_degree,
-                     sh_scale=cfg.sh_scale, bound=1.0, aabb=aabb, dims=dims)
+                     sh_scale=cfg.sh_scale, step_ratio=cfg.step_ratio, bound=1.0, aabb=aabb, dims=dims)
 
 
 def make_optimizer(field: GridField, cfg: TrainConfig):
@@ -206,10 +206,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
-           "stop_transmittance": 0.0, **ck["config"]}
+           "stop_transmittance": 0.0, "step_ratio": 0.5, **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "stop_transmittance",
-                "grid_start", "grid_final",
+                "grid_start", "grid_final", "step_ratio",
                 "sh_degree", "sh_scale", "frames", "windows", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
