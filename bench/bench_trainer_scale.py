@@ -20,6 +20,7 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--sparse]     # the lazy grid optimiser (off by default in the trainer)
         [--converge]   # also 3 x the iterations at both resolutions: is the 1 x run converged?
         [--runs 100:3000,400:9000,400:27000]   # the runs instead (the first two: the ratio's pair)
+        [--runs 100:9000,400:27000:1,400:81000:1]   # a third field: that run's --step-ratio (default 0.5)
         [--method oracle]   # another method (default spikelik)
         [--json FILE]  # the rows and the load averages, for the record
         [--device cuda]  # train and evaluate on the GPU (its name and peak GPU memory join the rows)
@@ -44,7 +45,7 @@ CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its it
 
 
 def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool,
-          method: str = "spikelik", device: str = "cpu") -> dict:
+          method: str = "spikelik", device: str = "cpu", step_ratio: float | None = None) -> dict:
     """Train and evaluate one run in this process; the figures as a dict."""
     from spikenerf.config import TrainConfig
     from spikenerf.eval import evaluate
@@ -52,7 +53,9 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
 
     # --sparse: the lazy optimiser for grids above 128^3 (the 400 x 400 run's final grid)
     lazy = {"lazy_above": 128 ** 3} if sparse else {}
-    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device=device, method=method, **lazy)
+    step = {} if step_ratio is None else {"step_ratio": step_ratio}
+    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device=device, method=method, **lazy,
+                      **step)
     t0 = time.perf_counter()
     ck = train(cfg, out, progress=False, log=lambda m: None)
     t_train = time.perf_counter() - t0
@@ -63,16 +66,18 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
     if gpu:  # and the most memory torch held on it (training and evaluation)
         import torch
         gpu["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
-    return {"method": method, "resolution": resolution, "iters": iters, "device": device, **gpu,
+    return {"method": method, "resolution": resolution, "iters": iters, "step_ratio": cfg.step_ratio,
+            "device": device, **gpu,
             "train_s": t_train, "eval_s": t_eval, "views": m["views"],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "checkpoint_mb": ck.stat().st_size / 1e6, "psnr": m["psnr"], "psnr_object": m["psnr_object"]}
 
 
-def run_child(args, resolution: int, iters: int, out: Path) -> dict:
+def run_child(args, resolution: int, iters: int, out: Path, step_ratio: float | None = None) -> dict:
     cmd = [sys.executable, __file__, args.dataset, "--iters", str(iters), "--child", str(resolution),
            "--out", str(out)] + (["--eval-views", str(args.eval_views)] if args.eval_views else []) + \
-          (["--sparse"] if args.sparse else []) + ["--method", args.method, "--device", args.device]
+          (["--sparse"] if args.sparse else []) + ["--method", args.method, "--device", args.device] + \
+          ([] if step_ratio is None else ["--step-ratio", str(step_ratio)])
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         sys.exit(f"the {resolution} x {resolution} run ({iters} iterations) failed: {res.stderr.strip().splitlines()[-1:]}")
@@ -80,15 +85,21 @@ def run_child(args, resolution: int, iters: int, out: Path) -> dict:
 
 
 def tripled(rows: list[dict], run: dict) -> dict | None:
-    """The run among ``rows`` at the same resolution with three times ``run``'s iterations, if any."""
-    return next((q for q in rows if q["resolution"] == run["resolution"] and q["iters"] == 3 * run["iters"]), None)
+    """The run among ``rows`` at the same resolution and sample step with three times ``run``'s iterations, if any."""
+    return next((q for q in rows if q["resolution"] == run["resolution"] and _step(q) == _step(run)
+                 and q["iters"] == 3 * run["iters"]), None)
+
+
+def _step(row: dict) -> float:
+    return row.get("step_ratio", 0.5)  # rows from before the option: the trainer's step then, 0.5 voxel
 
 
 def converged_runs(rows: list[dict]) -> dict:
-    """{resolution: the run with the fewest iterations whose object PSNR is within CONVERGED dB of the
-    same resolution's run with three times its iterations} (a resolution with no such pair: absent)."""
+    """{resolution: the run with the least training time whose object PSNR is within CONVERGED dB of
+    the same resolution's (and sample step's) run with three times its iterations} (a resolution with no
+    such pair: absent)."""
     out = {}
-    for r in sorted(rows, key=lambda r: r["iters"]):
+    for r in sorted(rows, key=lambda r: r["train_s"]):
         long = tripled(rows, r)
         if r["resolution"] not in out and long is not None and long["psnr_object"] - r["psnr_object"] <= CONVERGED:
             out[r["resolution"]] = r
@@ -96,10 +107,10 @@ def converged_runs(rows: list[dict]) -> dict:
 
 
 def table(rows: list[dict]) -> None:
-    print(f"{'run':>10} {'iters':>6} {'train s':>8} {'eval s':>7} {'views':>5} {'peak RSS MB':>11} "
+    print(f"{'run':>10} {'step':>4} {'iters':>6} {'train s':>8} {'eval s':>7} {'views':>5} {'peak RSS MB':>11} "
           f"{'checkpoint MB':>13} {'PSNR':>6} {'object':>6} {'load at end':>11}")
     for r in rows:
-        print(f"{r['resolution']:>4} x {r['resolution']:<3} {r['iters']:>6} {r['train_s']:>8.1f} {r['eval_s']:>7.1f} "
+        print(f"{r['resolution']:>4} x {r['resolution']:<3} {_step(r):>4g} {r['iters']:>6} {r['train_s']:>8.1f} {r['eval_s']:>7.1f} "
               f"{r['views']:>5} {r['peak_rss_mb']:>11.0f} {r['checkpoint_mb']:>13.1f} {r['psnr']:>6.2f} "
               f"{r['psnr_object']:>6.2f} {r.get('load_after', float('nan')):>11.2f}")
     a, b = rows[0], rows[1]
@@ -107,18 +118,18 @@ def table(rows: list[dict]) -> None:
     print(f"training time ratio {b['resolution']}/{a['resolution']} ({b['iters']} / {a['iters']} iterations): {ratio:.2f} "
           f"(the target is for a converged run: below); evaluation time ratio per view: "
           f"{(b['eval_s'] / b['views']) / (a['eval_s'] / a['views']):.2f}")
-    for r in sorted(rows, key=lambda r: (r["resolution"], r["iters"])):
+    for r in sorted(rows, key=lambda r: (r["resolution"], _step(r), r["iters"])):
         long = tripled(rows, r)
         if long is not None:
             gap = long["psnr_object"] - r["psnr_object"]
-            print(f"{r['resolution']} x {r['resolution']}: object PSNR at {long['iters']} minus at "
+            print(f"{r['resolution']} x {r['resolution']} (step {_step(r):g}): object PSNR at {long['iters']} minus at "
                   f"{r['iters']} iterations: {gap:+.2f} dB (converged within {CONVERGED} dB: "
                   f"{'yes' if gap <= CONVERGED else 'NO'})")
     conv = converged_runs(rows)
     hi, lo = max(r["resolution"] for r in rows), min(r["resolution"] for r in rows)
     if hi in conv:
         c = conv[hi]
-        print(f"{hi} x {hi} converged at {c['iters']} iterations in {c['train_s']:.0f} s: {c['train_s'] / a['train_s']:.2f} "
+        print(f"{hi} x {hi} converged at {c['iters']} iterations (step {_step(c):g}) in {c['train_s']:.0f} s: {c['train_s'] / a['train_s']:.2f} "
               f"times the {lo} x {lo} run of {a['iters']} iterations (target <= 3: "
               f"{'met' if c['train_s'] <= 3 * a['train_s'] else 'NOT met'})"
               + (f", {c['train_s'] / conv[lo]['train_s']:.2f} times the {lo} x {lo} run converged at {conv[lo]['iters']}"
@@ -129,6 +140,17 @@ def table(rows: list[dict]) -> None:
     print(f"peak memory {peak:.0f} MB (target < 4096: {'met' if peak < 4096 else 'NOT met'})")
     if any("gpu" in r for r in rows):
         print(f"on {rows[0]['gpu']}: peak GPU memory (torch) {max(r['peak_gpu_mb'] for r in rows):.0f} MB")
+
+
+def _planned(run: str) -> tuple[int, int, float | None]:
+    """``RES:ITERS`` or ``RES:ITERS:STEP_RATIO`` -> (resolution, iterations, step ratio or None)."""
+    parts = run.split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        return int(parts[0]), int(parts[1]), float(parts[2]) if len(parts) == 3 else None
+    except ValueError:
+        sys.exit(f"--runs: {run!r} is not RES:ITERS or RES:ITERS:STEP_RATIO")
 
 
 def main() -> None:
@@ -149,6 +171,7 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None, help="write the rows and load averages to this file")
     ap.add_argument("--table", type=Path, default=None, help="print the table of a saved --json file and stop")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
+    ap.add_argument("--step-ratio", type=float, default=None, help=argparse.SUPPRESS)  # the child's; --runs sets it
     args = ap.parse_args()
     if args.table:
         saved = json.loads(args.table.read_text())
@@ -161,7 +184,7 @@ def main() -> None:
         ap.error("a dataset is needed (or --table FILE)")
     if args.child:
         print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse,
-                               args.method, args.device)))
+                               args.method, args.device, args.step_ratio)))
         return
     load0 = os.getloadavg()
     plan_text = f"runs {args.runs}" if args.runs else f"{args.iters or 'the default'} iterations"
@@ -172,14 +195,15 @@ def main() -> None:
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         base = args.out or Path(tmp)
         if args.runs:
-            plan = [tuple(int(v) for v in run.split(":")) for run in args.runs.split(",")]
+            plan = [_planned(run) for run in args.runs.split(",")]
         else:
-            plan = [(res, args.iters or default_iters(res, res)) for res in (100, 400)]
+            plan = [(res, args.iters or default_iters(res, res), None) for res in (100, 400)]
             if args.converge:
-                plan += [(res, 3 * iters) for res, iters in reversed(plan)]
+                plan += [(res, 3 * iters, None) for res, iters, _ in reversed(plan)]
         rows = []
-        for res, iters in plan:
-            rows.append(run_child(args, res, iters, base / f"run{res}_{iters}"))
+        for res, iters, step in plan:
+            name = f"run{res}_{iters}" + ("" if step is None else f"_step{step:g}")
+            rows.append(run_child(args, res, iters, base / name, step))
             rows[-1]["load_after"] = round(os.getloadavg()[0], 2)  # the 1-minute load as the run ended
             print(f"  {res} x {res}, {iters} iterations: {rows[-1]['train_s']:.0f} s, object PSNR "
                   f"{rows[-1]['psnr_object']:.2f} (load {rows[-1]['load_after']:.2f})", flush=True)
