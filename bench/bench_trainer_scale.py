@@ -20,7 +20,7 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--sparse]     # the lazy grid optimiser (off by default in the trainer)
         [--converge]   # also 3 x the iterations at both resolutions: is the 1 x run converged?
         [--runs 100:3000,400:9000,400:27000]   # the runs instead (the first two: the ratio's pair)
-        [--runs 100:9000,400:27000:1,400:81000:1]   # a third field: that run's --step-ratio (default 0.5)
+        [--runs 100:9000,400:27000:1,400:81000:1]   # a third field: that run's --step-ratio (default: the trainer's, 0.5)
         [--method oracle]   # another method (default spikelik)
         [--json FILE]  # the rows and the load averages, for the record
         [--device cuda]  # train and evaluate on the GPU (its name and peak GPU memory join the rows)
@@ -39,23 +39,21 @@ import time
 from pathlib import Path
 
 from bench_protocol import _commit, _gpu  # (bench/ is this script's folder: on sys.path)
-from spikenerf.config import default_iters
+from spikenerf.config import TrainConfig, default_iters
 
 CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its iterations gain no more
 
 
 def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool,
-          method: str = "spikelik", device: str = "cpu", step_ratio: float | None = None) -> dict:
+          method: str = "spikelik", device: str = "cpu", step_ratio: float = TrainConfig.step_ratio) -> dict:
     """Train and evaluate one run in this process; the figures as a dict."""
-    from spikenerf.config import TrainConfig
     from spikenerf.eval import evaluate
     from spikenerf.train import train
 
     # --sparse: the lazy optimiser for grids above 128^3 (the 400 x 400 run's final grid)
     lazy = {"lazy_above": 128 ** 3} if sparse else {}
-    step = {} if step_ratio is None else {"step_ratio": step_ratio}
-    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device=device, method=method, **lazy,
-                      **step)
+    cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device=device, method=method,
+                      step_ratio=step_ratio, **lazy)
     t0 = time.perf_counter()
     ck = train(cfg, out, progress=False, log=lambda m: None)
     t_train = time.perf_counter() - t0
@@ -73,11 +71,11 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
             "checkpoint_mb": ck.stat().st_size / 1e6, "psnr": m["psnr"], "psnr_object": m["psnr_object"]}
 
 
-def run_child(args, resolution: int, iters: int, out: Path, step_ratio: float | None = None) -> dict:
+def run_child(args, resolution: int, iters: int, out: Path, step_ratio: float) -> dict:
     cmd = [sys.executable, __file__, args.dataset, "--iters", str(iters), "--child", str(resolution),
            "--out", str(out)] + (["--eval-views", str(args.eval_views)] if args.eval_views else []) + \
-          (["--sparse"] if args.sparse else []) + ["--method", args.method, "--device", args.device] + \
-          ([] if step_ratio is None else ["--step-ratio", str(step_ratio)])
+          (["--sparse"] if args.sparse else []) + ["--method", args.method, "--device", args.device,
+                                                   "--step-ratio", str(step_ratio)]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         sys.exit(f"the {resolution} x {resolution} run ({iters} iterations) failed: {res.stderr.strip().splitlines()[-1:]}")
@@ -142,13 +140,14 @@ def table(rows: list[dict]) -> None:
         print(f"on {rows[0]['gpu']}: peak GPU memory (torch) {max(r['peak_gpu_mb'] for r in rows):.0f} MB")
 
 
-def _planned(run: str) -> tuple[int, int, float | None]:
-    """``RES:ITERS`` or ``RES:ITERS:STEP_RATIO`` -> (resolution, iterations, step ratio or None)."""
+def _planned(run: str) -> tuple[int, int, float]:
+    """``RES:ITERS`` or ``RES:ITERS:STEP_RATIO`` -> (resolution, iterations, step ratio; the trainer's default
+    when not given)."""
     parts = run.split(":")
     try:
         if len(parts) not in (2, 3):
             raise ValueError
-        return int(parts[0]), int(parts[1]), float(parts[2]) if len(parts) == 3 else None
+        return int(parts[0]), int(parts[1]), float(parts[2]) if len(parts) == 3 else TrainConfig.step_ratio
     except ValueError:
         sys.exit(f"--runs: {run!r} is not RES:ITERS or RES:ITERS:STEP_RATIO")
 
@@ -171,7 +170,8 @@ def main() -> None:
     ap.add_argument("--json", type=Path, default=None, help="write the rows and load averages to this file")
     ap.add_argument("--table", type=Path, default=None, help="print the table of a saved --json file and stop")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
-    ap.add_argument("--step-ratio", type=float, default=None, help=argparse.SUPPRESS)  # the child's; --runs sets it
+    ap.add_argument("--step-ratio", type=float, default=TrainConfig.step_ratio,
+                    help=argparse.SUPPRESS)  # the child's; --runs sets it
     args = ap.parse_args()
     if args.table:
         saved = json.loads(args.table.read_text())
@@ -197,13 +197,12 @@ def main() -> None:
         if args.runs:
             plan = [_planned(run) for run in args.runs.split(",")]
         else:
-            plan = [(res, args.iters or default_iters(res, res), None) for res in (100, 400)]
+            plan = [(res, args.iters or default_iters(res, res), TrainConfig.step_ratio) for res in (100, 400)]
             if args.converge:
-                plan += [(res, 3 * iters, None) for res, iters, _ in reversed(plan)]
+                plan += [(res, 3 * iters, step) for res, iters, step in reversed(plan)]
         rows = []
         for res, iters, step in plan:
-            name = f"run{res}_{iters}" + ("" if step is None else f"_step{step:g}")
-            rows.append(run_child(args, res, iters, base / name, step))
+            rows.append(run_child(args, res, iters, base / f"run{res}_{iters}_step{step:g}", step))
             rows[-1]["load_after"] = round(os.getloadavg()[0], 2)  # the 1-minute load as the run ended
             print(f"  {res} x {res}, {iters} iterations: {rows[-1]['train_s']:.0f} s, object PSNR "
                   f"{rows[-1]['psnr_object']:.2f} (load {rows[-1]['load_after']:.2f})", flush=True)

@@ -61,15 +61,15 @@ def make_field(cfg: TrainConfig, width: int, space: ndc.NDC | None = None) -> Gr
     """The cube ``[-1.5, 1.5]^3`` in world units; with ``space``, its NDC box, sized as the cube
     ``[-1, 1]^3`` would be (``grid_start`` points across [-1, 1], cubic voxels, the box's upper
     corner moved out to the next whole voxel)."""
+    common = dict(grid_size=cfg.grid_start, final_size=final_grid(cfg, width), sh_degree=cfg.sh_degree,
+                  sh_scale=cfg.sh_scale, step_ratio=cfg.step_ratio)
     if space is None:
-        return GridField(grid_size=cfg.grid_start, final_size=final_grid(cfg, width), sh_degree=cfg.sh_degree,
-                         sh_scale=cfg.sh_scale, step_ratio=cfg.step_ratio)
+        return GridField(**common)
     lo, hi = np.array(space.box)
     voxel = 2.0 / (cfg.grid_start - 1)
     dims = [int(math.ceil((h - l) / voxel - 1e-6)) + 1 for l, h in zip(lo, hi)]
     aabb = [lo.tolist(), (lo + voxel * (np.array(dims) - 1)).tolist()]
-    return GridField(grid_size=cfg.grid_start, final_size=final_grid(cfg, width), sh_degree=cfg.sh_degree,
-                     sh_scale=cfg.sh_scale, step_ratio=cfg.step_ratio, bound=1.0, aabb=aabb, dims=dims)
+    return GridField(**common, bound=1.0, aabb=aabb, dims=dims)
 
 
 def make_optimizer(field: GridField, cfg: TrainConfig):
