@@ -18,8 +18,10 @@ skipped, so a long table is completed over several sessions; work folders live i
 run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
 resumed from; its wall_seconds are this session's only; train_seconds add up over sessions).
 ``--jobs N`` trains N runs at once (a GPU is busy about a third of a training step, the rest is the
-host's: docs/trainer.md, so several runs can use one; untried there yet); their rows say ``jobs``. ``--start-within S``: no run starts after S seconds (for a machine lent
-for a fixed time). ``--calibrated`` adds, for every method that uses the sensor's maps, a run with the
+host's: docs/trainer.md, so several runs can use one; 5 at once on an H200 trained about 2.1 times the
+runs an hour of one alone: docs/trainer.md "fourth lease"); their rows say ``jobs``. ``--start-within S``:
+no run starts after S seconds (for a machine lent for a fixed time). ``--calibrated`` adds, for every
+method that uses the sensor's maps (or those of ``--calibrated-methods``), a run with the
 maps of ``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
 real camera has) instead of the dataset's true maps, fitted for the camera's own response (``--kind``: the
 linear Eqs. S2-S6 for the integrate-and-fire sensors, the rsir fit for ``rsir``; rows say which in
@@ -236,7 +238,8 @@ def cells(args):
     maps once more with calibrated maps instead of the true ones."""
     variants = [(m, KNOWLEDGE[m]) for m in args.methods]
     if args.calibrated:
-        variants += [(m, "calibrated maps") for m in args.methods if KNOWLEDGE[m] == "true maps"]
+        chosen = getattr(args, "calibrated_methods", None) or args.methods
+        variants += [(m, "calibrated maps") for m in args.methods if KNOWLEDGE[m] == "true maps" and m in chosen]
     for data, sensor, i, (method, knows), seed in itertools.product(args.data, args.sensors, args.intensities,
                                                                     variants, args.seeds):
         yield data, sensor, i, {"data": data, "sensor": sensor, "intensity": i, "method": method,
@@ -263,6 +266,9 @@ def main() -> None:
                     "--batch-rays); stated in every row")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
+    ap.add_argument("--calibrated-methods", default="", help="with --calibrated: only these of the methods run once "
+                    "more with calibrated maps (default: every method given that uses the maps; the protocol's plan, "
+                    "bench/make_protocol.py PLAN, has spikelik alone)")
     ap.add_argument("--calibration-kind", choices=KINDS, default=None, help="the response the "
                     "calibrated maps are fitted for (spikegen calibrate --kind; default: the camera's own)")
     ap.add_argument("--device", default="auto")
@@ -280,7 +286,8 @@ def main() -> None:
     args = ap.parse_args()
     args.data, args.sensors, args.methods = (v.split(",") for v in (args.data, args.sensors, args.methods))
     args.intensities, args.seeds = ([int(v) for v in s.split(",")] for s in (args.intensities, args.seeds))
-    unknown = [m for m in args.methods if m not in KNOWLEDGE]
+    args.calibrated_methods = [m for m in args.calibrated_methods.split(",") if m]
+    unknown = [m for m in args.methods + args.calibrated_methods if m not in KNOWLEDGE]
     if unknown or ("lego" in args.data and not LEGO.is_dir()):
         sys.exit(f"unknown methods {unknown}" if unknown else f"{LEGO} not found: the real lego is needed")
     if args.jobs < 1 or args.start_within < 0:

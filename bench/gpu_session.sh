@@ -21,11 +21,14 @@
 #   rays3      the same with 20250 iterations (converged at 6750 if within 0.3 dB)
 #   fill       the 400 x 400 protocol's missing runs at the default budget (bench/make_protocol.py "Still
 #              missing"), JOBS (default 4) at once on the one GPU (a step keeps it busy about a third of
-#              the time, docs/trainer.md; how well runs share it is not yet measured): sensors
+#              the time; with 5 at once on an H200 a tfp run trained in 166-170 s against 71 s alone,
+#              spikenerf-paper in 333 s: docs/trainer.md "fourth lease"): sensors
 #              FILL_SENSORS (default rsir,paper,calibrated), intensities FILL_INTENSITIES (default
-#              16,32,64), every spike method and seed, with --calibrated; a dataset is made when its
+#              16,32,64), every spike method and seed, and spikelik once more with calibrated maps (the
+#              runs of bench/make_protocol.py PLAN; --calibrated-methods spikelik); a dataset is made when its
 #              first run is due, where the machine has none (about 70 s each with 16 workers); no run
-#              starts in the budget's last LAST_START seconds (default 240). Runs already in
+#              starts in the budget's last LAST_START seconds (default 360: a shared run's training and
+#              evaluation, the slowest method's). Runs already in
 #              bench/results/protocol.jsonl (the CPU's) are skipped too: the stage's results file
 #              (OUT/protocol_fill.jsonl) starts with the CPU's rows and then the GPU's, and what
 #              follows the CPU's rows is copied back to OUT/protocol_gpu.jsonl at the end
@@ -110,12 +113,12 @@ for st in $STAGES; do
         fill) # the CPU's rows are put in front so that their runs are skipped, and taken out again after
               F=$OUT/protocol_fill.jsonl
               [ -f "$F" ] || cat bench/results/protocol.jsonl "$OUT/protocol_gpu.jsonl" > "$F"
-              # no run starts in the last LAST_START seconds of the budget (default 240: about one run's time
-              # with JOBS sharing the GPU), so that runs are not cut by it
+              # no run starts in the last LAST_START seconds of the budget (default 360: about the slowest run's
+              # time with JOBS sharing the GPU), so that runs are not cut by it
               OMP_NUM_THREADS=2 stage protocol_fill python3 bench/bench_protocol.py --resolution 400 --device cuda \
-                  --start-within "$(( $(left) > ${LAST_START:-240} ? $(left) - ${LAST_START:-240} : 1 ))" \
+                  --start-within "$(( $(left) > ${LAST_START:-360} ? $(left) - ${LAST_START:-360} : 1 ))" \
                   --workers "$(nproc)" --jobs "${JOBS:-4}" --sensors "${FILL_SENSORS:-rsir,paper,calibrated}" \
-                  --intensities "${FILL_INTENSITIES:-16,32,64}" --calibrated --results "$F" --out bench_out/protocol \
+                  --intensities "${FILL_INTENSITIES:-16,32,64}" --calibrated --calibrated-methods spikelik --results "$F" --out bench_out/protocol \
                   --methods spikelik,spikenerf-paper,spikenerf,spikenerf-noR,tfp32,tfp256,tfi
               # the GPU rows: what $F holds past the CPU's lines (the CPU file is not changed by this stage)
               tail -n +"$(( $(wc -l < bench/results/protocol.jsonl) + 1 ))" "$F" > "$OUT/protocol_gpu.jsonl" ;;

@@ -225,6 +225,22 @@ def test_gpu_rows_sit_beside_the_same_run_on_the_cpu():
     assert "+0.96 dB" in conv and "not converged at 9000" in conv
 
 
+def test_gpu_section_pairs_only_runs_the_cpu_made(tmp_path, monkeypatch):
+    """The page from the committed results: a GPU run that fills a table is not paired with itself (the
+    GPU section's CPU column and its count of runs made on both read the CPU's results alone)."""
+    import bench_protocol
+    monkeypatch.setattr(make_protocol, "OUT", tmp_path / "PROTOCOL.md")
+    make_protocol.main()
+    text = (tmp_path / "PROTOCOL.md").read_text()
+
+    def current(path):
+        return [r for r in make_protocol.load(path) if r.get("field", bench_protocol.OLD_FIELD) == bench_protocol.FIELD]
+
+    cpu = {bench_protocol.row_key(r) for r in current(make_protocol.RESULTS)}
+    both = sum(bench_protocol.row_key(r) in cpu for r in current(make_protocol.GPU_RESULTS))
+    assert (f"Runs made on both: {both};" in text) == (both > 0)
+
+
 def test_rows_with_other_rays_a_step_are_other_runs():
     """A row records its rays a step (rows without it: the trainer's default); a run with another count
     is its own key, its own table line and target line, and fills no planned slot."""
@@ -410,3 +426,15 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
     assert fits == {("rsir", None), ("rsir", "rsir"), ("paper", None), ("paper", "if")}
     args.calibration_kind = "if"
     assert {c.get("calibration_fit") for *_, c in bench_protocol.cells(args)} == {None, "if"}
+    # every method that uses the maps runs once more with calibrated ones, or (--calibrated-methods) the
+    # ones named: the plan's spikelik alone, as bench/gpu_session.sh's fill asks
+    args.sensors, args.methods = ["paper"], ["spikelik", "spikenerf", "tfp32"]
+    variants = {(c["method"], c["knowledge"]) for *_, c in bench_protocol.cells(args)}
+    assert variants == {("spikelik", "true maps"), ("spikenerf", "true maps"), ("tfp32", "none"),
+                        ("spikelik", "calibrated maps"), ("spikenerf", "calibrated maps")}
+    args.calibrated_methods = ["spikelik"]
+    variants = {(c["method"], c["knowledge"]) for *_, c in bench_protocol.cells(args)}
+    assert variants == {("spikelik", "true maps"), ("spikenerf", "true maps"), ("tfp32", "none"),
+                        ("spikelik", "calibrated maps")}
+    assert ("spikelik", "calibrated maps") in make_protocol.PLANNED_LEGO
+    assert ("spikenerf", "calibrated maps") not in make_protocol.PLANNED_LEGO
