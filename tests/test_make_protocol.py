@@ -327,6 +327,23 @@ def test_gpu_runs_at_the_default_budget_fill_the_tables_once():
     assert any("Train seconds on cpu" in line and "Train seconds on cuda" in line for line in section)
 
 
+@pytest.mark.parametrize("extra, message", [
+    (["--calibrated-methods", "spikelik"], "--calibrated-methods needs --calibrated"),
+    (["--calibrated", "--calibrated-methods", "tfp32"], "tfp32 not among the --methods that use the sensor's maps"),
+    (["--calibrated", "--calibrated-methods", "spikenerf"], "spikenerf not among"),
+    (["--calibrated", "--calibrated-methods", "nope"], "unknown methods ['nope']")])
+def test_calibrated_methods_bad_input(tmp_path, monkeypatch, extra, message):
+    """--calibrated-methods without --calibrated, or naming a method that is not run with the sensor's
+    maps: one line, before anything is made."""
+    import bench_protocol
+    monkeypatch.setattr(sys, "argv", ["bench_protocol.py", "--data", "chair", "--methods", "spikelik,tfp32",
+                                      "--out", str(tmp_path / "out"), "--results", str(tmp_path / "r.jsonl"), *extra])
+    with pytest.raises(SystemExit) as e:
+        bench_protocol.main()
+    assert message in str(e.value) and "\n" not in str(e.value)
+    assert not any(tmp_path.iterdir())
+
+
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_no_run_starts_after_start_within(tmp_path, monkeypatch, capsys, jobs):
     """``--start-within S``: runs already started finish and are recorded; none starts after S seconds,
