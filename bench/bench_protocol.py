@@ -18,8 +18,8 @@ skipped, so a long table is completed over several sessions; work folders live i
 run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
 resumed from; its wall_seconds are this session's only; train_seconds add up over sessions).
 ``--jobs N`` trains N runs at once (a GPU is busy about a third of a training step, the rest is the
-host's: docs/trainer.md, so several runs can use one; 5 at once on an H200 trained about 2.1 times the
-runs an hour of one alone: docs/trainer.md "fourth lease"); their rows say ``jobs``. ``--start-within S``:
+host's: docs/trainer.md, so several runs can use one; 5 at once on an H200 gave about 2.1 times the
+training throughput of one at a time: docs/trainer.md "fourth lease"); their rows say ``jobs``. ``--start-within S``:
 no run starts after S seconds (for a machine lent for a fixed time). ``--calibrated`` adds, for every
 method that uses the sensor's maps (or those of ``--calibrated-methods``), a run with the
 maps of ``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
