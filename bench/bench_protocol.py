@@ -238,7 +238,7 @@ def cells(args):
     maps once more with calibrated maps instead of the true ones."""
     variants = [(m, KNOWLEDGE[m]) for m in args.methods]
     if args.calibrated:
-        chosen = getattr(args, "calibrated_methods", None) or args.methods
+        chosen = args.calibrated_methods or args.methods
         variants += [(m, "calibrated maps") for m in args.methods if KNOWLEDGE[m] == "true maps" and m in chosen]
     for data, sensor, i, (method, knows), seed in itertools.product(args.data, args.sensors, args.intensities,
                                                                     variants, args.seeds):
@@ -290,10 +290,11 @@ def main() -> None:
     unknown = [m for m in args.methods + args.calibrated_methods if m not in KNOWLEDGE]
     if unknown or ("lego" in args.data and not LEGO.is_dir()):
         sys.exit(f"unknown methods {unknown}" if unknown else f"{LEGO} not found: the real lego is needed")
+    if args.calibrated_methods and not args.calibrated:
+        sys.exit("--calibrated-methods needs --calibrated")
     mapless = [m for m in args.calibrated_methods if KNOWLEDGE[m] != "true maps" or m not in args.methods]
-    if args.calibrated_methods and (not args.calibrated or mapless):
-        sys.exit("--calibrated-methods needs --calibrated" if not args.calibrated else
-                 f"--calibrated-methods: {', '.join(mapless)} not among the --methods that use the sensor's maps")
+    if mapless:
+        sys.exit(f"--calibrated-methods: {', '.join(mapless)} not among the --methods that use the sensor's maps")
     if args.jobs < 1 or args.start_within < 0:
         sys.exit("--jobs must be at least 1 and --start-within at least 0")
     args.deadline = time.monotonic() + args.start_within if args.start_within else math.inf

@@ -598,10 +598,15 @@ def gpu_fills(gpu: list, cpu: list) -> list:
             and row_key(r) not in have]
 
 
+def current(rows: list) -> list:
+    """The rows made with the current trainer's field (rows without ``field``: the earlier one)."""
+    return [r for r in rows if r.get("field", OLD_FIELD) == FIELD]
+
+
 def main() -> None:
     every = load()
-    gpu = [r for r in load(GPU_RESULTS) if r.get("field", OLD_FIELD) == FIELD]
-    cpu = [r for r in every if r.get("field", OLD_FIELD) == FIELD]
+    gpu = current(load(GPU_RESULTS))
+    cpu = current(every)
     rows = cpu + gpu_fills(gpu, cpu)
     old = [r for r in every if r.get("field", OLD_FIELD) != FIELD]
     lines = [HEADER.replace("@@ITERS", iterations_note(rows)), "## The paper's numbers (not measured here)", ""]

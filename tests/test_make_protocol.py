@@ -232,12 +232,8 @@ def test_gpu_section_pairs_only_runs_the_cpu_made(tmp_path, monkeypatch):
     monkeypatch.setattr(make_protocol, "OUT", tmp_path / "PROTOCOL.md")
     make_protocol.main()
     text = (tmp_path / "PROTOCOL.md").read_text()
-
-    def current(path):
-        return [r for r in make_protocol.load(path) if r.get("field", bench_protocol.OLD_FIELD) == bench_protocol.FIELD]
-
-    cpu = {bench_protocol.row_key(r) for r in current(make_protocol.RESULTS)}
-    both = sum(bench_protocol.row_key(r) in cpu for r in current(make_protocol.GPU_RESULTS))
+    cpu, gpu = (make_protocol.current(make_protocol.load(f)) for f in (make_protocol.RESULTS, make_protocol.GPU_RESULTS))
+    both = len({bench_protocol.row_key(r) for r in cpu} & {bench_protocol.row_key(r) for r in gpu})
     assert (f"Runs made on both: {both};" in text) == (both > 0)
 
 
@@ -437,8 +433,8 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
     assert any(make_protocol.MISFIT in x and "24.00" in x for x in make_protocol.table(rows[:3], "psnr_object", "m"))
     # the runner asks for the camera's own fit, and --calibration-kind overrides it
     args = argparse.Namespace(data=["lego"], sensors=["rsir", "paper"], intensities=[64], methods=["spikelik"],
-                              seeds=[0], calibrated=True, resolution=100, iters=0, frames=0, batch_rays=2048,
-                              calibration_kind=None)
+                              seeds=[0], calibrated=True, calibrated_methods=[], resolution=100, iters=0, frames=0,
+                              batch_rays=2048, calibration_kind=None)
     fits = {(c["sensor"], c.get("calibration_fit")) for *_, c in bench_protocol.cells(args)}
     assert fits == {("rsir", None), ("rsir", "rsir"), ("paper", None), ("paper", "if")}
     args.calibration_kind = "if"
