@@ -154,8 +154,10 @@ def gpu_section(gpu: list, cpu: list) -> list[str]:
             diffs.append(m["psnr_object"] - c["metrics"]["psnr_object"])
             diff = f"{diffs[-1]:+.3f}"
         shared = f" ({r['jobs']} runs at once)" if r.get("jobs", 1) > 1 else ""
+        # a resumed run's wall seconds are its last session's part alone (its train seconds add up)
+        resumed = f" (resumed at iteration {r['resumed_at']})" if "resumed_at" in r else ""
         out.append(f"| {_run_name(r)} | {r.get('gpu', r['device'])} | {_iters(_budget(r))} | {r['train_seconds']:.0f}{shared} | "
-                   f"{r['wall_seconds']:.0f} | {m['psnr']:.2f} / {m['psnr_object']:.2f} | {same} | {diff} |")
+                   f"{r['wall_seconds']:.0f}{resumed} | {m['psnr']:.2f} / {m['psnr_object']:.2f} | {same} | {diff} |")
     out.append("")
     if diffs:
         out.append(f"Runs made on both: {len(diffs)}; the largest GPU − CPU difference in object PSNR is "

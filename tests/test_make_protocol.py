@@ -223,6 +223,10 @@ def test_gpu_rows_sit_beside_the_same_run_on_the_cpu():
     assert any("largest GPU − CPU difference in object PSNR is 0.040 dB" in line for line in lines)
     conv = next(line for line in lines if "0.3 dB criterion" in line)
     assert "+0.96 dB" in conv and "not converged at 9000" in conv
+    # a run resumed in a later call: its wall seconds are that call's part alone, and the line says so
+    resumed = make_protocol.gpu_section([{**gpu[0], "wall_seconds": 85.0, "resumed_at": 8000}], cpu)
+    assert any("| 85 (resumed at iteration 8000) |" in line for line in resumed)
+    assert not any("resumed" in line for line in lines)
 
 
 def test_gpu_section_pairs_only_runs_the_cpu_made(tmp_path, monkeypatch):
