@@ -31,7 +31,12 @@
 #              evaluation, the slowest method's). Runs already in
 #              bench/results/protocol.jsonl (the CPU's) are skipped too: the stage's results file
 #              (OUT/protocol_fill.jsonl) starts with the CPU's rows and then the GPU's, and what
-#              follows the CPU's rows is copied back to OUT/protocol_gpu.jsonl at the end
+#              follows the CPU's rows is copied back to OUT/protocol_gpu.jsonl at the end. Runs start in
+#              the order sensor, intensity, method (a method's calibrated-maps runs right after its own),
+#              seed. A run the budget cuts resumes from its checkpoint in a second call on the warm
+#              machine, made at once with the first's OUT/protocol_gpu.jsonl copied to
+#              bench/results/protocol_gpu.jsonl (so the finished runs are skipped): docs/trainer.md
+#              "fifth lease"
 #   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
 #              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
 #              whether its fewer steps make it faster on the GPU)

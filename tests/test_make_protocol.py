@@ -453,5 +453,14 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
     variants = {(c["method"], c["knowledge"]) for *_, c in bench_protocol.cells(args)}
     assert variants == {("spikelik", "true maps"), ("spikenerf", "true maps"), ("tfp32", "none"),
                         ("spikelik", "calibrated maps")}
+    # a method's calibrated-maps runs come right after its true-maps ones (a budget that stops the list
+    # part-way, as the GPU's fill does, leaves that pair whole), seeds innermost
+    args.calibrated_methods, args.seeds = [], [0, 1]
+    order = [(c["method"], c["knowledge"], c["seed"]) for *_, c in bench_protocol.cells(args)]
+    assert order == [("spikelik", "true maps", 0), ("spikelik", "true maps", 1),
+                     ("spikelik", "calibrated maps", 0), ("spikelik", "calibrated maps", 1),
+                     ("spikenerf", "true maps", 0), ("spikenerf", "true maps", 1),
+                     ("spikenerf", "calibrated maps", 0), ("spikenerf", "calibrated maps", 1),
+                     ("tfp32", "none", 0), ("tfp32", "none", 1)]
     assert ("spikelik", "calibrated maps") in make_protocol.PLANNED_LEGO
     assert ("spikenerf", "calibrated maps") not in make_protocol.PLANNED_LEGO
