@@ -25,7 +25,9 @@ method that uses the sensor's maps (or those of ``--calibrated-methods``), a run
 maps of ``spikegen calibrate`` on simulated dark and flat recordings of the same camera (what a user of a
 real camera has) instead of the dataset's true maps, fitted for the camera's own response (``--kind``: the
 linear Eqs. S2-S6 for the integrate-and-fire sensors, the rsir fit for ``rsir``; rows say which in
-``calibration_fit``, and rows without it were made with Eqs. S2-S6). No setting is chosen here: every method runs
+``calibration_fit``, and rows without it were made with Eqs. S2-S6). ``--plan`` keeps, of the runs asked
+for, those of the protocol's plan (bench/make_protocol.py ``PLAN``: what its "Still missing" counts), its
+calibrated-maps runs included. No setting is chosen here: every method runs
 with the trainer's defaults. ``oracle`` (not a spike method; it knows the ground-truth images of the
 train views) is the same field fitted to those images: what the field can represent.
 """
@@ -233,15 +235,26 @@ def _commit() -> str:
     return res.stdout.strip() + ("+changes" if dirty else "")
 
 
+def planned(resolution: int, data: str, sensor: str, intensity: int) -> list:
+    """The (method, knowledge) runs the protocol's plan (bench/make_protocol.py ``PLAN``, whose "Still
+    missing" lists those not yet made) holds for one cell; empty where it plans none."""
+    import make_protocol  # (it imports this module, so not at the top)
+    return [pair for res, datas, sensors, intensities, pairs in make_protocol.PLAN
+            if res == resolution and data in datas and sensor in sensors and intensity in intensities
+            for pair in pairs]
+
+
 def cells(args):
     """Every run asked for: each method with what it knows, and (``--calibrated``) the methods that use
     maps once more with calibrated maps instead of the true ones, right after their true-maps runs (a
     budget that stops the list part-way leaves the comparison of the two whole where it began)."""
-    chosen = (args.calibrated_methods or args.methods) if args.calibrated else []
+    chosen = (args.calibrated_methods or args.methods) if args.calibrated or args.plan else []
     variants = [v for m in args.methods for v in [(m, KNOWLEDGE[m])] +
                 ([(m, "calibrated maps")] if KNOWLEDGE[m] == "true maps" and m in chosen else [])]
     for data, sensor, i, (method, knows), seed in itertools.product(args.data, args.sensors, args.intensities,
                                                                     variants, args.seeds):
+        if args.plan and (method, knows) not in planned(args.resolution, data, sensor, i):
+            continue
         yield data, sensor, i, {"data": data, "sensor": sensor, "intensity": i, "method": method,
                                 "knowledge": knows, "resolution": args.resolution, "seed": seed,
                                 "iterations": args.iters or default_iters(args.resolution, args.resolution),
@@ -269,6 +282,9 @@ def main() -> None:
     ap.add_argument("--calibrated-methods", default="", help="with --calibrated: only these of the methods run once "
                     "more with calibrated maps (default: every method given that uses the maps; the protocol's plan, "
                     "bench/make_protocol.py PLAN, has spikelik alone)")
+    ap.add_argument("--plan", action="store_true", help="only the runs of the protocol's plan "
+                    "(bench/make_protocol.py PLAN) among those asked for: the plan's (method, knowledge) pairs, its "
+                    "calibrated-maps runs included (no --calibrated needed), at the default iterations, frames and rays")
     ap.add_argument("--calibration-kind", choices=KINDS, default=None, help="the response the "
                     "calibrated maps are fitted for (spikegen calibrate --kind; default: the camera's own)")
     ap.add_argument("--device", default="auto")
@@ -290,8 +306,12 @@ def main() -> None:
     unknown = [m for m in args.methods + args.calibrated_methods if m not in KNOWLEDGE]
     if unknown or ("lego" in args.data and not LEGO.is_dir()):
         sys.exit(f"unknown methods {unknown}" if unknown else f"{LEGO} not found: the real lego is needed")
-    if args.calibrated_methods and not args.calibrated:
-        sys.exit("--calibrated-methods needs --calibrated")
+    if args.calibrated_methods and not (args.calibrated or args.plan):
+        sys.exit("--calibrated-methods needs --calibrated or --plan")
+    if args.plan and (args.iters not in (0, default_iters(args.resolution, args.resolution)) or args.frames
+                      or args.batch_rays != DEFAULT_RAYS):
+        sys.exit("--plan: the plan's runs are at the default iterations, frames and rays a step "
+                 "(no --iters, --frames or --batch-rays)")
     mapless = [m for m in args.calibrated_methods if KNOWLEDGE[m] != "true maps" or m not in args.methods]
     if mapless:
         sys.exit(f"--calibrated-methods: {', '.join(mapless)} not among the --methods that use the sensor's maps")
@@ -301,12 +321,16 @@ def main() -> None:
     done = done_keys(args.results)
     models = {s: sensor_model(s) for s in args.sensors}
     args.results.parent.mkdir(parents=True, exist_ok=True)
-    todo = []
+    todo, asked = [], 0
     for data, sensor, i, cell in cells(args):
+        asked += 1
         cell["sensor_model"] = models[sensor]
         if row_key(cell) in done:
             continue
         todo.append((data, sensor, i, cell))
+    if not todo:
+        print(f"no runs to make: {asked} asked for{' (of the plan)' if args.plan else ''}, "
+              f"all already in {args.results}" if asked else "no runs to make: the plan holds none of those asked for")
     run_plan(todo, args)
 
 

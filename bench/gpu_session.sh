@@ -24,8 +24,8 @@
 #              the time; with 5 at once on an H200 a tfp run trained in 166-170 s against 71 s alone,
 #              spikenerf-paper in 333 s: docs/trainer.md "fourth lease"): sensors
 #              FILL_SENSORS (default rsir,paper,calibrated), intensities FILL_INTENSITIES (default
-#              16,32,64), every spike method and seed, and spikelik once more with calibrated maps (the
-#              runs of bench/make_protocol.py PLAN; --calibrated-methods spikelik); a dataset is made when its
+#              16,32,64), every seed, the runs bench/make_protocol.py PLAN holds (bench_protocol.py
+#              --plan: every spike method, and spikelik once more with calibrated maps); a dataset is made when its
 #              first run is due, where the machine has none (about 70 s each with 16 workers); no run
 #              starts in the budget's last LAST_START seconds (default 360: a shared run's training and
 #              evaluation, the slowest method's). Runs already in
@@ -123,7 +123,7 @@ for st in $STAGES; do
               OMP_NUM_THREADS=2 stage protocol_fill python3 bench/bench_protocol.py --resolution 400 --device cuda \
                   --start-within "$(( $(left) > ${LAST_START:-360} ? $(left) - ${LAST_START:-360} : 1 ))" \
                   --workers "$(nproc)" --jobs "${JOBS:-4}" --sensors "${FILL_SENSORS:-rsir,paper,calibrated}" \
-                  --intensities "${FILL_INTENSITIES:-16,32,64}" --calibrated --calibrated-methods spikelik --results "$F" --out bench_out/protocol \
+                  --intensities "${FILL_INTENSITIES:-16,32,64}" --plan --results "$F" --out bench_out/protocol \
                   --methods spikelik,spikenerf-paper,spikenerf,spikenerf-noR,tfp32,tfp256,tfi
               # the GPU rows: what $F holds past the CPU's lines (the CPU file is not changed by this stage)
               tail -n +"$(( $(wc -l < bench/results/protocol.jsonl) + 1 ))" "$F" > "$OUT/protocol_gpu.jsonl" ;;

@@ -328,7 +328,10 @@ def test_gpu_runs_at_the_default_budget_fill_the_tables_once():
 
 
 @pytest.mark.parametrize("extra, message", [
-    (["--calibrated-methods", "spikelik"], "--calibrated-methods needs --calibrated"),
+    (["--calibrated-methods", "spikelik"], "--calibrated-methods needs --calibrated or --plan"),
+    (["--plan", "--iters", "100"], "--plan: the plan's runs are at the default iterations"),
+    (["--plan", "--frames", "32"], "--plan: the plan's runs are at the default iterations"),
+    (["--plan", "--batch-rays", "8192"], "--plan: the plan's runs are at the default iterations"),
     (["--calibrated", "--calibrated-methods", "tfp32"], "tfp32 not among the --methods that use the sensor's maps"),
     (["--calibrated", "--calibrated-methods", "spikenerf"], "spikenerf not among"),
     (["--calibrated", "--calibrated-methods", "nope"], "unknown methods ['nope']")])
@@ -342,6 +345,53 @@ def test_calibrated_methods_bad_input(tmp_path, monkeypatch, extra, message):
         bench_protocol.main()
     assert message in str(e.value) and "\n" not in str(e.value)
     assert not any(tmp_path.iterdir())
+
+
+def test_plan_asks_for_the_runs_still_missing_counts():
+    """``--plan`` keeps, of the runs asked for, those of make_protocol's PLAN: with nothing made, as many
+    as "Still missing" counts for every planned cell, the calibrated-maps runs included without
+    --calibrated; none for a sensor or intensity outside the plan; the procedural scenes without them."""
+    import argparse
+
+    import bench_protocol
+    sensors, intensities = ["rsir", "paper", "calibrated", "ideal"], [8, 16, 32, 64]
+
+    def runs(res, data, **kw):
+        args = argparse.Namespace(**{"data": [data], "sensors": sensors, "intensities": intensities,
+                                     "methods": list(bench_protocol.METHODS), "seeds": [0, 1, 2], "calibrated": False,
+                                     "calibrated_methods": [], "resolution": res, "iters": 0, "frames": 0,
+                                     "batch_rays": 2048, "calibration_kind": None, "plan": True, **kw})
+        return [(c["sensor"], c["intensity"], c["method"], c["knowledge"], c["seed"])
+                for *_, c in bench_protocol.cells(args)]
+
+    def count(res, data):  # the runs "Still missing" names for one resolution and data, with no rows at all
+        return sum(int(x.split(": ")[1].split(" of ")[0]) for x in make_protocol.missing([])
+                   if x.startswith(f"- {data}, ") and f"{res} x {res}" in x)
+
+    lego = runs(400, "lego")
+    assert len(lego) == len(set(lego)) == count(400, "lego") == 3 * 3 * 8 * 3
+    assert {r[0] for r in lego} == {"rsir", "paper", "calibrated"} and {r[1] for r in lego} == {16, 32, 64}
+    assert ("calibrated", 16, "spikelik", "calibrated maps", 2) in lego
+    assert not any(r[2] == "oracle" or (r[3] == "calibrated maps" and r[2] != "spikelik") for r in lego)
+    # a method's calibrated-maps runs right after its true-maps ones
+    assert lego[:6] == [("rsir", 16, "spikelik", k, s) for k in ("true maps", "calibrated maps") for s in (0, 1, 2)]
+    chair = runs(100, "chair")
+    assert len(chair) == count(100, "chair") == 7 * 3
+    assert {(r[0], r[1]) for r in chair} == {("rsir", 64)} and "calibrated maps" not in {r[3] for r in chair}
+    assert runs(400, "chair") == []  # the plan has no 400 x 400 procedural scene
+    # without --plan the same request is every method, the oracle and the ideal sensor included
+    assert len(runs(400, "lego", plan=False)) == 4 * 4 * len(bench_protocol.METHODS) * 3
+
+
+def test_plan_with_nothing_to_make_says_so(tmp_path, monkeypatch, capsys):
+    """A request the plan holds no run of makes nothing and says so in one line."""
+    import bench_protocol
+    monkeypatch.setattr(sys, "argv", ["bench_protocol.py", "--resolution", "100", "--data", "chair", "--sensors",
+                                      "ideal", "--plan", "--out", str(tmp_path / "out"),
+                                      "--results", str(tmp_path / "r.jsonl")])
+    bench_protocol.main()
+    assert capsys.readouterr().out == "no runs to make: the plan holds none of those asked for\n"
+    assert not (tmp_path / "out").exists()
 
 
 @pytest.mark.parametrize("jobs", [1, 2])
@@ -438,7 +488,7 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
     # the runner asks for the camera's own fit, and --calibration-kind overrides it
     args = argparse.Namespace(data=["lego"], sensors=["rsir", "paper"], intensities=[64], methods=["spikelik"],
                               seeds=[0], calibrated=True, calibrated_methods=[], resolution=100, iters=0, frames=0,
-                              batch_rays=2048, calibration_kind=None)
+                              batch_rays=2048, calibration_kind=None, plan=False)
     fits = {(c["sensor"], c.get("calibration_fit")) for *_, c in bench_protocol.cells(args)}
     assert fits == {("rsir", None), ("rsir", "rsir"), ("paper", None), ("paper", "if")}
     args.calibration_kind = "if"
