@@ -37,6 +37,9 @@
 #              machine, made at once with the first's OUT/protocol_gpu.jsonl copied to
 #              bench/results/protocol_gpu.jsonl (so the finished runs are skipped): docs/trainer.md
 #              "fifth lease"
+#   conv32k    spikelik with 32768 rays a step for 45567 iterations, three times the 15189 that took 153 s on an
+#              H200 (third lease): whether 15189 are converged (0.3 dB), i.e. how far the 2-minute target
+#              is; about 460 s of training alone; a run the budget cuts resumes in a later call
 #   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
 #              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
 #              whether its fewer steps make it faster on the GPU)
@@ -50,7 +53,7 @@ BUDGET=${3:-540}
 shift $(( $# < 3 ? $# : 3 ))
 STAGES=${*:-tests spikelik profile baselines converge}
 for st in $STAGES; do
-    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|fill) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|conv32k|fill) ;; *) echo "unknown stage $st"; exit 2 ;; esac
 done
 T0=$(date +%s)
 mkdir -p "$OUT"
@@ -115,6 +118,7 @@ for st in $STAGES; do
         rays) stage protocol_rays8192_6750 $P --methods spikelik --seeds 0 --iters 6750 --batch-rays 8192 ;;
         rays3) stage protocol_rays8192_20250 $P --methods spikelik --seeds 0 --iters 20250 --batch-rays 8192 ;;
         rays32k) stage protocol_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 --batch-rays 32768 ;;
+        conv32k) stage protocol_rays32768_45567 $P --methods spikelik --seeds 0 --iters 45567 --batch-rays 32768 ;;
         fill) # the CPU's rows are put in front so that their runs are skipped, and taken out again after
               F=$OUT/protocol_fill.jsonl
               [ -f "$F" ] || cat bench/results/protocol.jsonl "$OUT/protocol_gpu.jsonl" > "$F"

@@ -494,7 +494,7 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
     args.calibration_kind = "if"
     assert {c.get("calibration_fit") for *_, c in bench_protocol.cells(args)} == {None, "if"}
     # every method that uses the maps runs once more with calibrated ones, or (--calibrated-methods) the
-    # ones named: the plan's spikelik alone, as bench/gpu_session.sh's fill asks
+    # ones named (the plan has spikelik alone: bench/gpu_session.sh's fill takes it from there with --plan)
     args.sensors, args.methods = ["paper"], ["spikelik", "spikenerf", "tfp32"]
     variants = {(c["method"], c["knowledge"]) for *_, c in bench_protocol.cells(args)}
     assert variants == {("spikelik", "true maps"), ("spikenerf", "true maps"), ("tfp32", "none"),
