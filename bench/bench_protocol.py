@@ -279,7 +279,7 @@ def main() -> None:
                     "--batch-rays); stated in every row")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
-    ap.add_argument("--calibrated-methods", default="", help="with --calibrated: only these of the methods run once "
+    ap.add_argument("--calibrated-methods", default="", help="with --calibrated or --plan: only these of the methods run once "
                     "more with calibrated maps (default: every method given that uses the maps; the protocol's plan, "
                     "bench/make_protocol.py PLAN, has spikelik alone)")
     ap.add_argument("--plan", action="store_true", help="only the runs of the protocol's plan "
@@ -301,7 +301,10 @@ def main() -> None:
                     "bench/results/protocol_gpu.jsonl)")
     args = ap.parse_args()
     args.data, args.sensors, args.methods = (v.split(",") for v in (args.data, args.sensors, args.methods))
-    args.intensities, args.seeds = ([int(v) for v in s.split(",")] for s in (args.intensities, args.seeds))
+    try:
+        args.intensities, args.seeds = ([int(v) for v in s.split(",")] for s in (args.intensities, args.seeds))
+    except ValueError:
+        sys.exit("--intensities and --seeds take comma-separated whole numbers")
     args.calibrated_methods = [m for m in args.calibrated_methods.split(",") if m]
     unknown = [m for m in args.methods + args.calibrated_methods if m not in KNOWLEDGE]
     if unknown or ("lego" in args.data and not LEGO.is_dir()):
@@ -329,8 +332,8 @@ def main() -> None:
             continue
         todo.append((data, sensor, i, cell))
     if not todo:
-        print(f"no runs to make: {asked} asked for{' (of the plan)' if args.plan else ''}, "
-              f"all already in {args.results}" if asked else "no runs to make: the plan holds none of those asked for")
+        print(f"no runs to make: {asked} asked for{' (of the plan)' if args.plan else ''}, all already in "
+              f"{args.results}" if asked else "no runs to make: the plan holds none of those asked for")
     run_plan(todo, args)
 
 

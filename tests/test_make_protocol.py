@@ -330,14 +330,17 @@ def test_gpu_runs_at_the_default_budget_fill_the_tables_once():
 @pytest.mark.parametrize("extra, message", [
     (["--calibrated-methods", "spikelik"], "--calibrated-methods needs --calibrated or --plan"),
     (["--plan", "--iters", "100"], "--plan: the plan's runs are at the default iterations"),
+    (["--seeds", ""], "--intensities and --seeds take comma-separated whole numbers"),
+    (["--intensities", "16,x"], "--intensities and --seeds take comma-separated whole numbers"),
     (["--plan", "--frames", "32"], "--plan: the plan's runs are at the default iterations"),
     (["--plan", "--batch-rays", "8192"], "--plan: the plan's runs are at the default iterations"),
     (["--calibrated", "--calibrated-methods", "tfp32"], "tfp32 not among the --methods that use the sensor's maps"),
     (["--calibrated", "--calibrated-methods", "spikenerf"], "spikenerf not among"),
     (["--calibrated", "--calibrated-methods", "nope"], "unknown methods ['nope']")])
-def test_calibrated_methods_bad_input(tmp_path, monkeypatch, extra, message):
-    """--calibrated-methods without --calibrated, or naming a method that is not run with the sensor's
-    maps: one line, before anything is made."""
+def test_runner_bad_input(tmp_path, monkeypatch, extra, message):
+    """--calibrated-methods without --calibrated or --plan, or naming a method that is not run with the
+    sensor's maps; --plan off the default budget; intensities or seeds that are not whole numbers: one
+    line, before anything is made."""
     import bench_protocol
     monkeypatch.setattr(sys, "argv", ["bench_protocol.py", "--data", "chair", "--methods", "spikelik,tfp32",
                                       "--out", str(tmp_path / "out"), "--results", str(tmp_path / "r.jsonl"), *extra])
