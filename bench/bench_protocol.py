@@ -235,13 +235,15 @@ def _commit() -> str:
     return res.stdout.strip() + ("+changes" if dirty else "")
 
 
-def planned(resolution: int, data: str, sensor: str, intensity: int) -> list:
+@functools.lru_cache(maxsize=None)
+def planned(resolution: int, data: str, sensor: str, intensity: int) -> frozenset:
     """The (method, knowledge) runs the protocol's plan (bench/make_protocol.py ``PLAN``, whose "Still
-    missing" lists those not yet made) holds for one cell; empty where it plans none."""
+    missing" lists those not yet made) holds for one cell; empty where it plans none. Read once a cell
+    (:func:`cells` asks for every method and seed)."""
     import make_protocol  # (it imports this module, so not at the top)
-    return [pair for res, datas, sensors, intensities, pairs in make_protocol.PLAN
-            if res == resolution and data in datas and sensor in sensors and intensity in intensities
-            for pair in pairs]
+    return frozenset(pair for res, datas, sensors, intensities, pairs in make_protocol.PLAN
+                     if res == resolution and data in datas and sensor in sensors and intensity in intensities
+                     for pair in pairs)
 
 
 def cells(args):
@@ -279,9 +281,9 @@ def main() -> None:
                     "--batch-rays); stated in every row")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
-    ap.add_argument("--calibrated-methods", default="", help="with --calibrated or --plan: only these of the methods run once "
-                    "more with calibrated maps (default: every method given that uses the maps; the protocol's plan, "
-                    "bench/make_protocol.py PLAN, has spikelik alone)")
+    ap.add_argument("--calibrated-methods", default="", help="with --calibrated or --plan: only these of the "
+                    "methods run once more with calibrated maps (default: every method given that uses the maps; "
+                    "the protocol's plan, bench/make_protocol.py PLAN, has spikelik alone)")
     ap.add_argument("--plan", action="store_true", help="only the runs of the protocol's plan "
                     "(bench/make_protocol.py PLAN) among those asked for: the plan's (method, knowledge) pairs, its "
                     "calibrated-maps runs included (no --calibrated needed), at the default iterations, frames and rays")
@@ -331,9 +333,11 @@ def main() -> None:
         if row_key(cell) in done:
             continue
         todo.append((data, sensor, i, cell))
-    if not todo:
-        print(f"no runs to make: {asked} asked for{' (of the plan)' if args.plan else ''}, all already in "
-              f"{args.results}" if asked else "no runs to make: the plan holds none of those asked for")
+    if not asked:  # (only --plan can leave none)
+        print("no runs to make: the plan holds none of those asked for")
+    elif not todo:
+        print(f"no runs to make: {asked} asked for{' (of the plan)' if args.plan else ''}, "
+              f"all already in {args.results}")
     run_plan(todo, args)
 
 
