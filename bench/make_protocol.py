@@ -19,7 +19,7 @@ OUT = HERE / "PROTOCOL.md"
 INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
 from bench_protocol import (DEFAULT_RAYS, FIELD, KEY, KNOWLEDGE, METHODS, OLD_FIELD,  # noqa: E402 (the runner's names)
-                            calibration_fit, row_key, sensor_kind, sensor_model, sensor_name)
+                            TABLE_ORDER, calibration_fit, row_key, sensor_kind, sensor_model, sensor_name)
 from spikenerf.config import default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
 
 # Calibrated maps fitted with another response than the camera's own (Eqs. S2-S6 on the rsir camera, the rows
@@ -38,6 +38,11 @@ SCENES = ("chair", "ficus", "hotdog", "materials", "mic")
 PLAN = [(400, ("lego",), ("rsir", "paper", "calibrated"), INTENSITIES, PLANNED_LEGO),
         (100, ("lego",), ("rsir", "paper", "calibrated"), INTENSITIES, PLANNED_LEGO),
         (100, SCENES, ("rsir",), (64,), PLANNED)]  # every baseline too: the default must beat each on every scene
+def _order(method: str) -> int:
+    """A method's place in the tables (bench_protocol.TABLE_ORDER; an unknown one last)."""
+    return TABLE_ORDER.index(method) if method in TABLE_ORDER else len(TABLE_ORDER)
+
+
 PAPER = {  # the paper's Table S3, lego, PSNR full / object: their data, their protocol, 400 x 400
     "TFP(32)+NeRF": {16: (15.27, 15.57), 32: (17.81, 18.55), 64: (20.63, 21.86)},
     "SpikeNeRF": {16: (18.72, 19.38), 32: (22.05, 23.66), 64: (23.89, 24.46)},
@@ -145,7 +150,7 @@ def gpu_section(gpu: list, cpu: list) -> list[str]:
            "train s | GPU − CPU, object |", "|---|---|---|---|---|---|---|---|"]
     diffs = []
     for r in sorted(gpu, key=lambda r: (-r["resolution"], r["data"], r["sensor"], r["intensity"],
-                                        METHODS.index(r["method"]) if r["method"] in METHODS else 99,
+                                        _order(r["method"]),
                                         r["knowledge"], r["seed"], _rays(r), r["iterations"])):
         m, c = r["metrics"], by_key.get(row_key(r))
         same, diff = "–", "–"
@@ -186,7 +191,7 @@ def table(rows: list, key: str, label: str) -> list[str]:
     groups = defaultdict(list)
     for r in rows:
         groups[(r["method"], r["knowledge"], r["iterations"], r["frames"], _rays(r))].append(r)
-    order = sorted(groups, key=lambda g: (METHODS.index(g[0]) if g[0] in METHODS else 99, g[1], g[2], g[3], g[4]))
+    order = sorted(groups, key=lambda g: (_order(g[0]), g[1], g[2], g[3], g[4]))
     out = [f"| {label} | knows | iters | frames | " + " | ".join(f"i{i}" for i in INTENSITIES) + " |",
            "|---|---|---|---|" + "---|" * len(INTENSITIES)]
     for g in order:
@@ -285,7 +290,7 @@ def scenes_table(rows: list) -> list[str]:
                 "| method | knows | " + " | ".join(scenes) + " | mean of the scene means |",
                 "|---|---|" + "---|" * (len(scenes) + 1)]
         groups = sorted({(r["method"], r["knowledge"]) for r in rs},
-                        key=lambda g: (METHODS.index(g[0]) if g[0] in METHODS else 99, g[1]))
+                        key=lambda g: (_order(g[0]), g[1]))
         for method, knows in groups:
             line, means = [], []
             for s in scenes:
@@ -318,7 +323,7 @@ def sequence_table(rows: list) -> list[str]:
             continue
         res, data, sensor, i, budget = key
         methods = sorted({r["method"] for r in rs if r["frames"] and r["knowledge"] == KNOWLEDGE.get(r["method"])},
-                         key=lambda m: METHODS.index(m) if m in METHODS else 99)
+                         key=_order)
         cols = ws + [0]
 
         def obj(m, w):
@@ -376,6 +381,9 @@ def measured(rows: list) -> list[str]:
 
 
 BASELINES = ("spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi")
+# The default, and the default before 2026-11-28 (spikelik reading the counts alone; its rows on the
+# integrate-and-fire sensors were made as "spikelik" and relabelled), each with its label in the targets
+DEFAULTS = {"spikelik": "", "spikelik-count": " (spikelik-count: the default before 2026-11-28)"}
 
 
 def _values(rows: list, method: str, knowledge: str, intensity: int, key: str = "psnr_object",
@@ -442,19 +450,19 @@ def targets(rows: list) -> list[str]:
     below, above = [], []  # where the first target is not met: the oracle's margin under 3 dB, or not
     for (res, data, sensor, budget) in sorted(cells, key=lambda c: (-c[0], c[1], c[2], c[3])):
         rs = cells[(res, data, sensor, budget)]
-        for i in INTENSITIES:
-            d, nd = _mean(rs, "spikelik", "true maps", i)
+        for default, i in itertools.product(DEFAULTS, INTENSITIES):
+            d, nd = _mean(rs, default, "true maps", i)
             if d is None:
                 continue
             p, n_p = _mean(rs, "spikenerf-paper", "true maps", i)
             base = [(b, *_mean(rs, b, KNOWLEDGE[b], i)) for b in BASELINES]
             base = [x for x in base if x[1] is not None]
-            c, nc = _mean(rs, "spikelik", "calibrated maps", i)
+            c, nc = _mean(rs, default, "calibrated maps", i)
             o, o_from = _oracle(oracles[(res, data, budget)], sensor, i)
             paper = _verdict(None if p is None else d - p, p is not None and d - p >= 3.0, min(nd, n_p))
             if base:
                 name, b, nb = max(base, key=lambda x: x[1])
-                band = tie_band(_values(rs, "spikelik", "true maps", i), _values(rs, name, KNOWLEDGE[name], i))
+                band = tie_band(_values(rs, default, "true maps", i), _values(rs, name, KNOWLEDGE[name], i))
                 tie = band is not None and abs(d - b) <= band
                 best = _verdict(d - b, d - b > 0, min(nd, nb), f"tie: within ±{band:.2f}" if tie else None)
                 best += f" vs {name}"
@@ -464,11 +472,11 @@ def targets(rows: list) -> list[str]:
                 best = "–"
             cal = _verdict(None if c is None else c - d, c is not None and c - d >= -0.5, min(nd, nc))
             ceiling = "–" if o is None or p is None else f"{o - p:+.2f}" + ("" if o_from is None else f" ({o_from}'s oracle)")
-            out.append(f"| {data}, {sensor}, {res} x {res}, {_iters(budget)} it | i{i} | {paper} | {best} | {cal} | {ceiling} |")
+            label = f"{data}, {sensor}, {res} x {res}, {_iters(budget)} it" + DEFAULTS[default]
+            out.append(f"| {label} | i{i} | {paper} | {best} | {cal} | {ceiling} |")
             if p is not None and o is not None and d - p < 3.0:
                 (below if o - p < 3.0 else above).append(
-                    f"{data}, {sensor}, {res} x {res}, {_iters(budget)} it, i{i}"
-                    + ("" if o - p < 3.0 else f" (the default {o - d:.2f} dB below the oracle)"))
+                    f"{label}, i{i}" + ("" if o - p < 3.0 else f" ({'the default' if default == 'spikelik' else default} {o - d:.2f} dB below the oracle)"))
     if len(out) == 2:
         return []
     if below or above:
@@ -515,8 +523,9 @@ def port_bias_section(rows: list) -> list[str]:
                 "`calibrated`, the `rsir` generator's for `rsir`; no parameter fitted); and times one gain per run "
                 "fitted on the reported "
                 "views themselves (an oracle: a diagnostic of how much of the error is a brightness scale, never "
-                "a setting; gain mean). `spikelik`, the default, is the control: it models the subtractive "
-                "reset, so undoing a loss it does not have makes it worse. On `rsir` data the loop and the "
+                "a setting; gain mean). The default is the control (on `paper` and `calibrated` these runs are "
+                "`spikelik-count`, the default before 2026-11-28, which reads the counts alone): it models the "
+                "subtractive reset, so undoing a loss it does not have makes it worse. On `rsir` data the loop and the "
                 "data's pixel lose about alike (last column of the rate table), so there the port's bias and what "
                 "undoing it gives back should be small: a counter-check.", "",
                 "| sensor | I | method | runs (seeds) | as saved | " + " | ".join(f"loss undone, spread {s}"
@@ -546,7 +555,8 @@ def error_by_count(cells: dict) -> list[str]:
     pairs = []
     for sensor, i in keys:
         port = [r for r in cells.get((sensor, i, "spikenerf-paper"), []) if "by_expected_count" in r]
-        default = [r for r in cells.get((sensor, i, "spikelik"), []) if "by_expected_count" in r]
+        default = next(([r for r in cells.get((sensor, i, m), []) if "by_expected_count" in r] for m in DEFAULTS
+                        if any("by_expected_count" in r for r in cells.get((sensor, i, m), []))), [])
         if port and default:
             pairs.append((sensor, i, port, default))
     if not pairs:
@@ -643,10 +653,13 @@ def main() -> None:
                   "of the scene at one size, whatever its intensity or sensor, so its runs on one serve the "
                   "others (marked with the intensity, and the sensor where it is another's): the same seed "
                   "trains the same field, to the bit, from datasets at two intensities and from three sensors' "
-                  "(tests/test_trainer_cli.py, test_oracle_does_not_depend_on_the_intensity_or_the_sensor). On the `paper` sensor (static views from an integrate-and-fire "
-                  "sensor without shot noise) `spikenerf` supervises with the same statistic as the default, so "
-                  "the two tie by construction (docs/trainer.md, \"Methods\"): the second target cannot be met "
-                  "there against it.", ""]
+                  "(tests/test_trainer_cli.py, test_oracle_does_not_depend_on_the_intensity_or_the_sensor). On the `paper` and `calibrated` sensors (static views from an "
+                  "integrate-and-fire sensor without shot noise, or with little) `spikenerf` supervises with the "
+                  "same statistic as `spikelik-count`, the default before 2026-11-28, so those two tie by "
+                  "construction (docs/trainer.md, \"Methods\"); the default since reads each view's count from its "
+                  "first and last spike times there (docs/trainer.md, \"Spike times\"). Rows of `spikelik-count` "
+                  "are that earlier default's, labelled as such; on the `rsir` sensor, whose spike times carry no "
+                  "such bound, `spikelik` reads the counts as it did, and its rows are the same runs.", ""]
     if PORT_BIAS.is_file():
         lines += port_bias_section([json.loads(x) for x in PORT_BIAS.read_text().splitlines() if x.strip()])
     if gpu:

@@ -58,7 +58,7 @@ def moving(tmp_path_factory):
 
 def test_windows_get_their_own_poses(moving):
     ds = load_dataset(moving)
-    tg = build_targets(ds, METHODS["spikelik"], SIZE, SIZE, progress=False, windows=8)
+    tg = build_targets(ds, METHODS["spikelik-count"], SIZE, SIZE, progress=False, windows=8)
     n_train = len(ds.splits["train"])
     assert tg.values.shape == (8 * n_train, SIZE * SIZE) and np.all(tg.frames == 32)
     first, last = tg.poses[0], tg.poses[7]
@@ -66,6 +66,9 @@ def test_windows_get_their_own_poses(moving):
     whole = build_targets(ds, METHODS["spikenerf"], SIZE, SIZE, progress=False)
     assert whole.values.shape == (n_train, SIZE * SIZE)
     assert np.allclose(tg.values.reshape(n_train, 8, -1).sum(axis=1), whole.values)
+    times = build_targets(ds, METHODS["spikelik"], SIZE, SIZE, progress=False, windows=8)  # each window's spike times
+    assert times.statistic == "interval" and np.array_equal(times.poses, tg.poses)
+    assert np.abs(times.values - tg.values).max() <= 1.0 and (times.values != tg.values).any()
 
 
 def test_spikelik_trains_on_moving_views(moving, tmp_path):

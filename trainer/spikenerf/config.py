@@ -42,6 +42,9 @@ class TrainConfig:
     windows: int = 0  # count windows per view of a moving camera; 0 = as few as keep each window's image
     #                   motion under a pixel (targets.count_windows; resolved when training)
     sensor_maps: str = ""  # a sensor file whose R and dark current replace the dataset's (e.g. a calibration)
+    # what a count method read from each window, "count" or "interval" (targets.count_statistic): resolved
+    # from the method and the dataset's sensor when training, recorded, not chosen ("" until then)
+    statistic: str = ""
     seed: int = 0
     batch_rays: int = 2048
     lr_grid: float = 0.1

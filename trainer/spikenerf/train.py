@@ -202,15 +202,16 @@ def checkpoint_camera(ck: dict) -> tuple:
 def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int]) -> None:
     """``legacy``: (frames, windows) of a checkpoint from before those keys existed. Checkpoints from
     before SH was added have no SH keys: they are degree 0 (the scale is then moot); those from before
-    --frames used every frame of the stream, those from before --windows the method's fixed count."""
+    --frames used every frame of the stream, those from before --windows the method's fixed count, those
+    from before ``statistic`` the counts."""
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
-           "stop_transmittance": 0.0, "step_ratio": 0.5, **ck["config"]}
+           "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "stop_transmittance",
                 "grid_start", "grid_final", "step_ratio",
-                "sh_degree", "sh_scale", "frames", "windows", "sensor_maps", "fit_box", "lazy_above"):
+                "sh_degree", "sh_scale", "frames", "windows", "statistic", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
                              f"{new.get(key)!r}; use another --out or the same settings")
@@ -258,6 +259,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
         log(f"{ds.root}: {why}" + ("" if space else "; the field stays in the world cube [-1.5, 1.5]^3"))
     tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None,
                        windows=cfg.windows)
+    cfg = dataclasses.replace(cfg, statistic=tg.statistic)
     if cfg.windows > 1:
         log(f"{ds.root}: the counts of each moving view in {cfg.windows} windows of about {cfg.frames / cfg.windows:.0f} "
             f"frames, each seen from its own pose")
