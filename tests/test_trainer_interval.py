@@ -98,3 +98,18 @@ def test_the_statistic_is_recorded_and_guards_resume(dataset, tmp_path):
     from spikegen.errors import InputError
     with pytest.raises(InputError, match="statistic='count'"):
         train(_cfg(dataset, iters=8), run, progress=False, log=lambda m: None)
+
+
+def test_bench_interval_reports_both_targets_and_refuses_rsir(dataset, tmp_path_factory):
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    script = Path(__file__).resolve().parents[1] / "bench" / "bench_interval.py"
+    res = subprocess.run([sys.executable, str(script), str(dataset), "--views", "2"], capture_output=True, text=True)
+    assert res.returncode == 0, res.stderr
+    gain = float(res.stdout.strip().splitlines()[-1].split(":")[1].split()[0])
+    assert gain > 0  # the sphere at i64: the spike times' images are closer to the truth
+    rsir = sphere_dataset(tmp_path_factory, "rsir")
+    res = subprocess.run([sys.executable, str(script), str(rsir)], capture_output=True, text=True)
+    assert res.returncode == 1 and "rsir" in res.stderr and "Traceback" not in res.stderr

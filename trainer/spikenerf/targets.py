@@ -134,12 +134,11 @@ def interval_statistic(spikes: np.ndarray, electrons: float = 0.0, jitter: float
     (tests/test_trainer_interval.py).
     """
     n = spikes.shape[0]
-    count = spikes.sum(axis=0, dtype=np.int32).astype(np.float64)
-    t = np.arange(1, n + 1, dtype=np.int32)[:, None, None]
-    fired = spikes > 0
-    last = np.where(fired, t, 0).max(axis=0).astype(np.float64)
-    first = np.where(fired, t, n + 1).min(axis=0).astype(np.float64)
-    span = np.maximum(last - first, 1.0)  # (only where K >= 2 is it read, and there it is >= 1)
+    fired = spikes.astype(bool, copy=False)
+    count = fired.sum(axis=0, dtype=np.int32).astype(np.float64)
+    first = fired.argmax(axis=0)  # the first spike's frame from 0 (0 too without a spike: not read there)
+    last = n - 1 - fired[::-1].argmax(axis=0)
+    span = np.maximum(last - first, 1).astype(np.float64)  # (only where K >= 2 is it read, and there it is >= 1)
     lo = np.maximum((count - 1) / (span + 1), (count - 1) / n)
     hi = np.minimum(np.where(span > 1, (count - 1) / np.maximum(span - 1, 1.0), np.inf), (count + 1) / n)
     hi = np.maximum(hi, lo)
