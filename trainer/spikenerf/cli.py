@@ -36,7 +36,8 @@ def main():
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--method", default=DEFAULT_METHOD, show_default=True, type=click.Choice(list(METHODS)),
               help="Supervision: the published method, an idealised variant and its ablation, the TFP/TFI "
-                   "baselines, or the project's best.")
+                   "baselines, the project's best (spikelik; spikelik-count: it without spike times, the "
+                   "default before 2026-11-28), or the oracle (the ground-truth images).")
 @click.option("--iters", default=TrainConfig.iters, show_default=True, type=click.IntRange(min=0),
               help="Training iterations; 0 = chosen from the image size (" +
                    ", ".join(f"{n} at {round(p ** 0.5)} x {round(p ** 0.5)}" for p, n in ITERS_AT) + ").")
