@@ -38,6 +38,8 @@ SCENES = ("chair", "ficus", "hotdog", "materials", "mic")
 PLAN = [(400, ("lego",), ("rsir", "paper", "calibrated"), INTENSITIES, PLANNED_LEGO),
         (100, ("lego",), ("rsir", "paper", "calibrated"), INTENSITIES, PLANNED_LEGO),
         (100, SCENES, ("rsir",), (64,), PLANNED)]  # every baseline too: the default must beat each on every scene
+
+
 def _order(method: str) -> int:
     """A method's place in the tables (bench_protocol.TABLE_ORDER; an unknown one last)."""
     return TABLE_ORDER.index(method) if method in TABLE_ORDER else len(TABLE_ORDER)

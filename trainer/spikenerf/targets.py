@@ -134,7 +134,7 @@ def interval_statistic(spikes: np.ndarray, electrons: float = 0.0, jitter: float
     (tests/test_trainer_interval.py).
     """
     n = spikes.shape[0]
-    fired = spikes.astype(bool, copy=False)
+    fired = spikes.astype(bool)
     count = fired.sum(axis=0, dtype=np.int32).astype(np.float64)
     first = fired.argmax(axis=0)  # the first spike's frame from 0 (0 too without a spike: not read there)
     last = n - 1 - fired[::-1].argmax(axis=0)
