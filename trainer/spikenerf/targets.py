@@ -144,7 +144,7 @@ def interval_statistic(spikes: np.ndarray, electrons: float = 0.0, jitter: float
     hi = np.maximum(hi, lo)
     shot = (count - 1) / electrons if electrons > 0 else 0.0
     var_interval = n ** 2 * ((hi - lo) ** 2 / 12.0 + (2.0 * jitter ** 2 + shot) / span ** 2)
-    var_count = 1.0 / 6.0 + 2.0 * jitter ** 2 + (count / electrons if electrons > 0 else 0.0)
+    var_count = 1.0 / 6.0 + 2.0 * jitter ** 2 + (count / electrons if electrons > 0 else 0.0)  # neuron.count_variance
     return np.where((count >= 2) & (var_interval < var_count), n * 0.5 * (lo + hi), count)
 
 
@@ -159,11 +159,11 @@ def count_statistic(method: Method, sensor) -> str:
 
 
 def view_images(ds: Dataset, view, method: Method, height: int, width: int, frames: int | None = None,
-                windows: int = 1, statistic: str = "count", sensor=None):
+                windows: int = 1, sensor=None):
     """[(pose [4,4], value [H,W], frames)] of one view for ``method``, from its first ``frames`` frames;
     count targets in ``windows`` windows (:func:`count_windows`; a static view has one), each window's
-    ``statistic`` (:func:`count_statistic`; ``"interval"`` needs the dataset's ``sensor``, a
-    :class:`SensorMaps`, for its noise)."""
+    statistic the one :func:`count_statistic` gives for the dataset's ``sensor`` (a :class:`SensorMaps`;
+    None: the counts)."""
     w = frames or ds.frames
     if method.target == "truth":
         if not has_ground_truth(view):
@@ -172,6 +172,7 @@ def view_images(ds: Dataset, view, method: Method, height: int, width: int, fram
     spikes = read_view_spikes(ds, view)[:w]
     if method.target == "counts":
         out = []
+        statistic = "count" if sensor is None else count_statistic(method, sensor)
         for a, b in window_bounds(w, 1 if view.is_static() else windows):
             if statistic == "interval":
                 counts = interval_statistic(spikes[a:b], sensor.electrons, sensor.threshold_jitter).astype(np.float32)
@@ -206,7 +207,7 @@ def build_targets(ds: Dataset, method: Method, height: int, width: int, progress
     statistic = count_statistic(method, sensor)
     poses, values, lengths = [], [], []
     for view in tqdm(ds.splits["train"], desc="reading spikes", unit="view", disable=not progress, leave=False):
-        for pose, value, n in view_images(ds, view, method, height, width, frames, windows, statistic, sensor):
+        for pose, value, n in view_images(ds, view, method, height, width, frames, windows, sensor):
             poses.append(pose)
             values.append(value.reshape(-1))
             lengths.append(n)
