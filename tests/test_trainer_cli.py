@@ -246,6 +246,24 @@ def test_run_options_from_the_command_line_and_resume_guard(dataset, tmp_path, o
         assert res.exit_code == 2 and option in res.output and not (tmp_path / "bad").exists()
 
 
+def test_upsample_at_sets_the_grid_schedule_and_guards_resume(dataset, tmp_path):
+    """``--upsample-at``: the grid grows once per fraction of the iterations, recorded in config.json; a
+    resume with another schedule is refused with one line; a bad list is refused before anything is made."""
+    run = tmp_path / "up"
+    args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
+    res = CliRunner().invoke(main, args + ["--iters", "20", "--upsample-at", "0.25,0.5"])
+    assert res.exit_code == 0, res.output
+    cfg = json.loads((run / "config.json").read_text())
+    assert cfg["upsample_at"] == [0.25, 0.5]
+    its, sizes = zip(*cfg["grid_schedule"])
+    assert its == (5, 10) and cfg["grid_start"] < sizes[0] < sizes[1]
+    res = CliRunner().invoke(main, args + ["--iters", "40"])  # the default schedule: three growths
+    assert res.exit_code == 2 and "upsample_at=[0.25, 0.5]" in res.output and "Traceback" not in res.output
+    for bad in ("0.5,0.2", "0", "0.1,1", "a,b", "", "0.1,0.1"):
+        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), "--upsample-at", bad])
+        assert res.exit_code == 2 and "--upsample-at" in res.output and not (tmp_path / "bad").exists(), bad
+
+
 def test_oracle_learns_the_sphere_from_its_images_and_needs_them(dataset, tmp_path):
     """``--method oracle`` fits the train views' ground-truth images; a view whose PNG is a
     reconstruction (an imported capture) has none: one line, exit 2, no run folder."""

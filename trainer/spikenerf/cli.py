@@ -79,6 +79,10 @@ def main():
 @click.option("--step-ratio", default=TrainConfig.step_ratio, show_default=True,
               type=click.FloatRange(min=0.1, max=2),
               help="The sample step along a ray, in voxels of the current grid.")
+@click.option("--upsample-at", "upsample_at", default=",".join(f"{f:g}" for f in TrainConfig.upsample_at),
+              show_default=True, callback=lambda ctx, param, value: _fractions(value), metavar="F,F,...",
+              help="The fractions of the iterations at which the grid grows, in increasing order in (0, 1): as many "
+                   "growths, each by the same factor, from the start size to the final size.")
 @click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),
               help="Weight of the total-variation (smoothness) prior on the grids.")
 @click.option("--tv-points", default=TrainConfig.tv_points, show_default=True, type=click.IntRange(min=0),
@@ -93,8 +97,8 @@ def main():
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, windows, sensor_maps, out, seed, batch_rays, lr_grid,
           lr_decay, sh_degree,
-          grid_final, fit_box, space, stop_transmittance, step_ratio, tv_weight, tv_points, lazy_above, checkpoint_every,
-          do_eval, quiet):
+          grid_final, fit_box, space, stop_transmittance, step_ratio, upsample_at, tv_weight, tv_points, lazy_above,
+          checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
 
@@ -104,7 +108,7 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
                       frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
                       sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, stop_transmittance=stop_transmittance,
-                      step_ratio=step_ratio, tv_weight=tv_weight, tv_points=tv_points, space=space, lazy_above=lazy_above,
+                      step_ratio=step_ratio, upsample_at=upsample_at, tv_weight=tv_weight, tv_points=tv_points, space=space, lazy_above=lazy_above,
                       checkpoint_every=checkpoint_every,
                       sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
                       else "")
@@ -160,6 +164,17 @@ def render_cmd(run, path_name, frames, out, fps, device, quiet):
         click.echo(f"interrupted; {out} not written", err=True)
         sys.exit(130)
     click.echo(f"{out}: {n} frames ({path_name}, {fps:g} fps)")
+
+
+def _fractions(value: str) -> tuple:
+    """``--upsample-at``: "0.1,0.2,0.3" -> (0.1, 0.2, 0.3); one to eight fractions, increasing, in (0, 1)."""
+    try:
+        fs = tuple(float(v) for v in value.split(","))
+    except ValueError:
+        raise click.BadParameter(f"{value!r}: expected fractions separated by commas, e.g. 0.1,0.2,0.3") from None
+    if not 1 <= len(fs) <= 8 or not all(0 < f < 1 for f in fs) or any(b <= a for a, b in zip(fs, fs[1:])):
+        raise click.BadParameter(f"{value!r}: expected one to eight fractions in (0, 1), increasing")
+    return fs
 
 
 def _eval(run, split, device, quiet, compare_with="auto"):
