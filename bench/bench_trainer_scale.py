@@ -111,11 +111,12 @@ def table(rows: list[dict]) -> None:
         print(f"{r['resolution']:>4} x {r['resolution']:<3} {_step(r):>4g} {r['iters']:>6} {r['train_s']:>8.1f} {r['eval_s']:>7.1f} "
               f"{r['views']:>5} {r['peak_rss_mb']:>11.0f} {r['checkpoint_mb']:>13.1f} {r['psnr']:>6.2f} "
               f"{r['psnr_object']:>6.2f} {r.get('load_after', float('nan')):>11.2f}")
-    a, b = rows[0], rows[1]
-    ratio = b["train_s"] / a["train_s"]
-    print(f"training time ratio {b['resolution']}/{a['resolution']} ({b['iters']} / {a['iters']} iterations): {ratio:.2f} "
-          f"(the target is for a converged run: below); evaluation time ratio per view: "
-          f"{(b['eval_s'] / b['views']) / (a['eval_s'] / a['views']):.2f}")
+    a = rows[0]
+    if len(rows) > 1:  # the ratio's pair: the first two runs
+        b = rows[1]
+        print(f"training time ratio {b['resolution']}/{a['resolution']} ({b['iters']} / {a['iters']} iterations): "
+              f"{b['train_s'] / a['train_s']:.2f} (the target is for a converged run: below); evaluation time ratio "
+              f"per view: {(b['eval_s'] / b['views']) / (a['eval_s'] / a['views']):.2f}")
     for r in sorted(rows, key=lambda r: (r["resolution"], _step(r), r["iters"])):
         long = tripled(rows, r)
         if long is not None:
@@ -208,11 +209,11 @@ def main() -> None:
                   f"{rows[-1]['psnr_object']:.2f} (load {rows[-1]['load_after']:.2f})", flush=True)
     load1 = os.getloadavg()
     print(f"load average at end: {' '.join(f'{x:.2f}' for x in load1)}")
-    table(rows)
-    if args.json:
+    if args.json:  # first: the runs are what took the time
         args.json.write_text(json.dumps({"dataset": args.dataset, "load_start": load0, "load_end": load1,
                                          "omp_threads": os.environ.get("OMP_NUM_THREADS"), "commit": _commit(),
                                          "rows": rows}, indent=1))
+    table(rows)
 
 
 if __name__ == "__main__":

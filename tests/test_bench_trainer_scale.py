@@ -1,0 +1,35 @@
+"""bench/bench_trainer_scale.py's table: the ratio of the first two runs, which runs are converged (within
+0.3 dB of three times their iterations), and a single run printed without a ratio (it used to fail)."""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "bench"))
+scale = pytest.importorskip("bench_trainer_scale")
+
+
+def _row(res, iters, train_s, obj):
+    return {"resolution": res, "iters": iters, "train_s": train_s, "eval_s": 1.0, "views": 2, "peak_rss_mb": 500.0,
+            "checkpoint_mb": 10.0, "psnr": obj + 6, "psnr_object": obj, "load_after": 1.0}
+
+
+def test_table_ratio_and_converged_runs(capsys):
+    rows = [_row(100, 9000, 100.0, 29.4), _row(400, 9000, 250.0, 27.1), _row(400, 27000, 800.0, 26.6),
+            _row(100, 27000, 300.0, 28.3), _row(400, 3000, 90.0, 25.0)]
+    scale.table(rows)
+    out = capsys.readouterr().out
+    assert "training time ratio 400/100 (9000 / 9000 iterations): 2.50" in out
+    # 400 at 3000 gains 2.1 dB by 9000: not converged; 400 at 9000 loses by 27000: converged
+    assert "object PSNR at 9000 minus at 3000 iterations: +2.10 dB (converged within 0.3 dB: NO)" in out
+    assert "400 x 400 converged at 9000 iterations (step 0.5) in 250 s: 2.50 times" in out
+    assert "(target <= 3: met), 2.50 times the 100 x 100 run converged at 9000" in out
+    assert scale.converged_runs(rows)[400]["iters"] == 9000
+
+
+def test_table_of_one_run_has_no_ratio(capsys):
+    scale.table([_row(100, 27000, 300.0, 28.3)])
+    out = capsys.readouterr().out
+    assert "28.30" in out and "ratio" not in out and "no 100 x 100 run is shown converged" in out
