@@ -108,7 +108,8 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
                       frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
                       sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, stop_transmittance=stop_transmittance,
-                      step_ratio=step_ratio, upsample_at=upsample_at, tv_weight=tv_weight, tv_points=tv_points, space=space, lazy_above=lazy_above,
+                      step_ratio=step_ratio, upsample_at=upsample_at, tv_weight=tv_weight, tv_points=tv_points,
+                      space=space, lazy_above=lazy_above,
                       checkpoint_every=checkpoint_every,
                       sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps
                       else "")
