@@ -141,6 +141,45 @@ def table(rows: list[dict]) -> None:
         print(f"on {rows[0]['gpu']}: peak GPU memory (torch) {max(r['peak_gpu_mb'] for r in rows):.0f} MB")
 
 
+def across(files: list[dict], names: list[str]) -> None:
+    """Several saved files of the same data: which runs are converged over all their rows (a run made in
+    two files counts once: the trainer is deterministic). Times compare only within one file (runs made
+    side by side), so the ratio of the converged runs is printed from a file that holds both."""
+    if len({f["dataset"] for f in files}) > 1:
+        sys.exit("--table: the files are of different datasets; convergence across them means nothing")
+    key = lambda r: (r["resolution"], _step(r), r["iters"])  # noqa: E731
+    runs = {}
+    for f in files:
+        for r in f["rows"]:
+            runs.setdefault(key(r), r)
+    rows = [runs[k] for k in sorted(runs)]
+    print(f"across the {len(files)} files (object PSNR; training times compare within a file only):")
+    conv = {}
+    for r in rows:
+        long = tripled(rows, r)
+        if long is not None:
+            gap = long["psnr_object"] - r["psnr_object"]
+            print(f"  {r['resolution']} x {r['resolution']} (step {_step(r):g}): at {long['iters']} minus at {r['iters']} "
+                  f"iterations: {gap:+.2f} dB (converged within {CONVERGED} dB: {'yes' if gap <= CONVERGED else 'NO'})")
+            if gap <= CONVERGED:
+                conv.setdefault(r["resolution"], key(r))  # the fewest iterations converged at this size
+    for res, k in sorted(conv.items()):
+        print(f"  {res} x {res}: converged at {k[2]} iterations (step {k[1]:g})")
+    if len(conv) < 2:
+        print("  not both sizes shown converged: no ratio of converged runs")
+        return
+    lo, hi = conv[min(conv)], conv[max(conv)]
+    for f, name in zip(files, names):
+        held = {key(r): r for r in f["rows"]}
+        if lo in held and hi in held:
+            ratio = held[hi]["train_s"] / held[lo]["train_s"]
+            print(f"  converged against converged, side by side in {name}: {hi[0]} x {hi[0]} / {lo[0]} x {lo[0]} = "
+                  f"{held[hi]['train_s']:.1f} / {held[lo]['train_s']:.1f} s = {ratio:.2f} "
+                  f"(target <= 3: {'met' if ratio <= 3 else 'NOT met'})")
+            return
+    print("  no file holds both converged runs: no side-by-side ratio")
+
+
 def _planned(run: str) -> tuple[int, int, float]:
     """``RES:ITERS`` or ``RES:ITERS:STEP_RATIO`` -> (resolution, iterations, step ratio; the trainer's default
     when not given)."""
@@ -169,17 +208,23 @@ def main() -> None:
     ap.add_argument("--device", default="cpu", choices=["cpu", "cuda"], help="where both runs train and evaluate "
                     "(cuda: the GPU's name and peak GPU memory are added to each row)")
     ap.add_argument("--json", type=Path, default=None, help="write the rows and load averages to this file")
-    ap.add_argument("--table", type=Path, default=None, help="print the table of a saved --json file and stop")
+    ap.add_argument("--table", type=Path, nargs="+", default=None,
+                    help="print the table of each saved --json file and stop; with several (the same data), then "
+                         "which runs are converged over all their rows")
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--step-ratio", type=float, default=TrainConfig.step_ratio,
                     help=argparse.SUPPRESS)  # the child's; --runs sets it
     args = ap.parse_args()
     if args.table:
-        saved = json.loads(args.table.read_text())
-        print(f"{saved['dataset']}; method {saved['rows'][0].get('method', 'spikelik')}; "
-              f"OMP_NUM_THREADS={saved['omp_threads']}; load average at start "
-              f"{' '.join(f'{x:.2f}' for x in saved['load_start'])}, at end {' '.join(f'{x:.2f}' for x in saved['load_end'])}")
-        table(saved["rows"])
+        files = [json.loads(f.read_text()) for f in args.table]
+        for f, saved in zip(args.table, files):
+            print(f"{f.name}: {saved['dataset']}; method {saved['rows'][0].get('method', 'spikelik')}; "
+                  f"OMP_NUM_THREADS={saved['omp_threads']}; load average at start "
+                  f"{' '.join(f'{x:.2f}' for x in saved['load_start'])}, at end "
+                  f"{' '.join(f'{x:.2f}' for x in saved['load_end'])}; commit {saved.get('commit', '?')}")
+            table(saved["rows"])
+        if len(files) > 1:
+            across(files, [f.name for f in args.table])
         return
     if not args.dataset:
         ap.error("a dataset is needed (or --table FILE)")

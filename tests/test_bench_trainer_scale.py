@@ -33,3 +33,27 @@ def test_table_of_one_run_has_no_ratio(capsys):
     scale.table([_row(100, 27000, 300.0, 28.3)])
     out = capsys.readouterr().out
     assert "28.30" in out and "ratio" not in out and "no 100 x 100 run is shown converged" in out
+
+
+def _file(rows, dataset="D"):
+    return {"dataset": dataset, "rows": rows}
+
+
+def test_across_files_converged_runs_and_the_side_by_side_ratio(capsys):
+    """Convergence over several files' rows (a run in two files counts once); the ratio of the converged runs
+    only from a file holding both (times from different files were not made side by side)."""
+    a = _file([_row(100, 3000, 50.0, 29.0), _row(400, 4500, 120.0, 26.3), _row(400, 13500, 360.0, 27.2)])
+    b = _file([_row(100, 9000, 140.0, 29.4), _row(400, 9000, 230.0, 27.1)])
+    c = _file([_row(100, 27000, 430.0, 28.3)])
+    d = _file([_row(400, 27000, 900.0, 26.6)])
+    scale.across([a, b, c], ["a", "b", "c"])
+    out = capsys.readouterr().out
+    assert "100 x 100: converged at 9000" in out and "no ratio of converged runs" in out  # 400 at 9000: no 27000
+    scale.across([a, b, c, d], ["a", "b", "c", "d"])
+    out = capsys.readouterr().out
+    assert "400 x 400: converged at 9000" in out
+    assert "side by side in b: 400 x 400 / 100 x 100 = 230.0 / 140.0 s = 1.64 (target <= 3: met)" in out
+    scale.across([a, c, d], ["a", "c", "d"])  # the 9000-iteration runs nowhere: 100 x 100 not shown converged
+    assert "no ratio of converged runs" in capsys.readouterr().out
+    with pytest.raises(SystemExit):
+        scale.across([a, _file([], dataset="E")], ["a", "e"])
