@@ -92,6 +92,23 @@ def _step(row: dict) -> float:
     return row.get("step_ratio", 0.5)  # rows from before the option: the trainer's step then, 0.5 voxel
 
 
+def _key(row: dict) -> tuple:
+    """A run's identity within one dataset: (resolution, sample step, iterations)."""
+    return row["resolution"], _step(row), row["iters"]
+
+
+def _gaps(rows: list[dict]):
+    """(run, object PSNR of its 3 x run minus its own, the line that says so) for each run of ``rows`` that has
+    a 3 x run among them, in the order of :func:`_key`."""
+    for r in sorted(rows, key=_key):
+        long = tripled(rows, r)
+        if long is not None:
+            gap = long["psnr_object"] - r["psnr_object"]
+            yield r, gap, (f"{r['resolution']} x {r['resolution']} (step {_step(r):g}): object PSNR at {long['iters']} "
+                           f"minus at {r['iters']} iterations: {gap:+.2f} dB (converged within {CONVERGED} dB: "
+                           f"{'yes' if gap <= CONVERGED else 'NO'})")
+
+
 def converged_runs(rows: list[dict]) -> dict:
     """{resolution: the run with the least training time whose object PSNR is within CONVERGED dB of
     the same resolution's (and sample step's) run with three times its iterations} (a resolution with no
@@ -117,13 +134,8 @@ def table(rows: list[dict]) -> None:
         print(f"training time ratio {b['resolution']}/{a['resolution']} ({b['iters']} / {a['iters']} iterations): "
               f"{b['train_s'] / a['train_s']:.2f} (the target is for a converged run: below); evaluation time ratio "
               f"per view: {(b['eval_s'] / b['views']) / (a['eval_s'] / a['views']):.2f}")
-    for r in sorted(rows, key=lambda r: (r["resolution"], _step(r), r["iters"])):
-        long = tripled(rows, r)
-        if long is not None:
-            gap = long["psnr_object"] - r["psnr_object"]
-            print(f"{r['resolution']} x {r['resolution']} (step {_step(r):g}): object PSNR at {long['iters']} minus at "
-                  f"{r['iters']} iterations: {gap:+.2f} dB (converged within {CONVERGED} dB: "
-                  f"{'yes' if gap <= CONVERGED else 'NO'})")
+    for _, _, line in _gaps(rows):
+        print(line)
     conv = converged_runs(rows)
     hi, lo = max(r["resolution"] for r in rows), min(r["resolution"] for r in rows)
     if hi in conv:
@@ -147,22 +159,16 @@ def across(files: list[dict], names: list[str]) -> None:
     side by side), so the ratio of the converged runs is printed from a file that holds both."""
     if len({f["dataset"] for f in files}) > 1:
         sys.exit("--table: the files are of different datasets; convergence across them means nothing")
-    key = lambda r: (r["resolution"], _step(r), r["iters"])  # noqa: E731
     runs = {}
     for f in files:
         for r in f["rows"]:
-            runs.setdefault(key(r), r)
-    rows = [runs[k] for k in sorted(runs)]
-    print(f"across the {len(files)} files (object PSNR; training times compare within a file only):")
+            runs.setdefault(_key(r), r)
+    print(f"across the {len(files)} files (training times compare within a file only):")
     conv = {}
-    for r in rows:
-        long = tripled(rows, r)
-        if long is not None:
-            gap = long["psnr_object"] - r["psnr_object"]
-            print(f"  {r['resolution']} x {r['resolution']} (step {_step(r):g}): at {long['iters']} minus at {r['iters']} "
-                  f"iterations: {gap:+.2f} dB (converged within {CONVERGED} dB: {'yes' if gap <= CONVERGED else 'NO'})")
-            if gap <= CONVERGED:
-                conv.setdefault(r["resolution"], key(r))  # the fewest iterations converged at this size
+    for r, gap, line in _gaps(list(runs.values())):
+        print(f"  {line}")
+        if gap <= CONVERGED:
+            conv.setdefault(r["resolution"], _key(r))  # the fewest iterations converged at this size
     for res, k in sorted(conv.items()):
         print(f"  {res} x {res}: converged at {k[2]} iterations (step {k[1]:g})")
     if len(conv) < 2:
@@ -170,7 +176,7 @@ def across(files: list[dict], names: list[str]) -> None:
         return
     lo, hi = conv[min(conv)], conv[max(conv)]
     for f, name in zip(files, names):
-        held = {key(r): r for r in f["rows"]}
+        held = {_key(r): r for r in f["rows"]}
         if lo in held and hi in held:
             ratio = held[hi]["train_s"] / held[lo]["train_s"]
             print(f"  converged against converged, side by side in {name}: {hi[0]} x {hi[0]} / {lo[0]} x {lo[0]} = "

@@ -32,6 +32,18 @@ def main():
     """Radiance fields from spike streams (SpikeNeRF, CVPR 2024)."""
 
 
+def _fractions(ctx, param, value: str) -> tuple:
+    """``--upsample-at``'s callback: "0.1,0.2,0.3" -> (0.1, 0.2, 0.3); one to eight fractions, increasing, in
+    (0, 1)."""
+    try:
+        fs = tuple(float(v) for v in value.split(","))
+    except ValueError:
+        raise click.BadParameter(f"{value!r}: expected fractions separated by commas, e.g. 0.1,0.2,0.3") from None
+    if not 1 <= len(fs) <= 8 or not all(0 < f < 1 for f in fs) or any(b <= a for a, b in zip(fs, fs[1:])):
+        raise click.BadParameter(f"{value!r}: expected one to eight fractions in (0, 1), increasing")
+    return fs
+
+
 @main.command()
 @click.argument("dataset", type=click.Path(path_type=Path))
 @click.option("--method", default=DEFAULT_METHOD, show_default=True, type=click.Choice(list(METHODS)),
@@ -80,7 +92,7 @@ def main():
               type=click.FloatRange(min=0.1, max=2),
               help="The sample step along a ray, in voxels of the current grid.")
 @click.option("--upsample-at", "upsample_at", default=",".join(f"{f:g}" for f in TrainConfig.upsample_at),
-              show_default=True, callback=lambda ctx, param, value: _fractions(value), metavar="F,F,...",
+              show_default=True, callback=_fractions, metavar="F,F,...",
               help="The fractions of the iterations at which the grid grows, in increasing order in (0, 1): as many "
                    "growths, each by the same factor, from the start size to the final size.")
 @click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),
@@ -165,17 +177,6 @@ def render_cmd(run, path_name, frames, out, fps, device, quiet):
         click.echo(f"interrupted; {out} not written", err=True)
         sys.exit(130)
     click.echo(f"{out}: {n} frames ({path_name}, {fps:g} fps)")
-
-
-def _fractions(value: str) -> tuple:
-    """``--upsample-at``: "0.1,0.2,0.3" -> (0.1, 0.2, 0.3); one to eight fractions, increasing, in (0, 1)."""
-    try:
-        fs = tuple(float(v) for v in value.split(","))
-    except ValueError:
-        raise click.BadParameter(f"{value!r}: expected fractions separated by commas, e.g. 0.1,0.2,0.3") from None
-    if not 1 <= len(fs) <= 8 or not all(0 < f < 1 for f in fs) or any(b <= a for a, b in zip(fs, fs[1:])):
-        raise click.BadParameter(f"{value!r}: expected one to eight fractions in (0, 1), increasing")
-    return fs
 
 
 def _eval(run, split, device, quiet, compare_with="auto"):

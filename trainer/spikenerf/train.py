@@ -207,8 +207,7 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
-           "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", "upsample_at": [0.1, 0.2, 0.3],
-           **ck["config"]}
+           "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "stop_transmittance",
                 "grid_start", "grid_final", "step_ratio", "upsample_at",
