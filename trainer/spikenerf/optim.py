@@ -41,12 +41,13 @@ WINDOW = 512  # steps after a voxel's last update over which its momentum drift 
 
 class LazyGridAdam:
     """Adam (``betas``, ``eps`` as :class:`torch.optim.Adam`) over ``field.grids()``, updated lazily from
-    ``field.tape``; the MLP's parameters (if any) get a fused dense :class:`torch.optim.Adam`.
+    ``field.tape``; the MLP's parameters (if any) get a fused dense :class:`torch.optim.Adam` (``eps_mlp``).
 
     ``param_groups[0]["lr"]`` is the grids' learning rate, ``param_groups[1]["lr"]`` the MLP's.
     """
 
-    def __init__(self, field, lr_grid: float, lr_mlp: float, betas=(0.9, 0.99), eps: float = 1e-8):
+    def __init__(self, field, lr_grid: float, lr_mlp: float, betas=(0.9, 0.99), eps: float = 1e-8,
+                 eps_mlp: float = 1e-8):
         self.field, self.betas, self.eps = field, betas, eps
         self.grids = field.grids()
         self.step_count = 0
@@ -58,7 +59,7 @@ class LazyGridAdam:
         # W(s) of the module docstring for s = step_count - WINDOW .. step_count (index s - w_base)
         self.w_base, self.w = 0, np.zeros(1)
         mlp_params = list(field.mlp.parameters())
-        self.mlp = torch.optim.Adam(mlp_params, lr=lr_mlp, betas=betas, eps=eps, fused=True) if mlp_params else None
+        self.mlp = torch.optim.Adam(mlp_params, lr=lr_mlp, betas=betas, eps=eps_mlp, fused=True) if mlp_params else None
         self.param_groups = [{"lr": lr_grid}] + (self.mlp.param_groups if self.mlp else [{"lr": lr_mlp}])
 
     def zero_grad(self, set_to_none: bool = True) -> None:

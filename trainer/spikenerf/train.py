@@ -78,8 +78,8 @@ def make_optimizer(field: GridField, cfg: TrainConfig):
     that it records those reads. Otherwise PyTorch's fused dense Adam."""
     field.sparse = cfg.lazy_above > 0 and field.grid[0, 0].numel() > cfg.lazy_above
     if field.sparse:
-        return LazyGridAdam(field, cfg.lr_grid, cfg.lr_mlp, betas=(0.9, 0.99))
-    return torch.optim.Adam([{"params": field.grids(), "lr": cfg.lr_grid},
+        return LazyGridAdam(field, cfg.lr_grid, cfg.lr_mlp, betas=(0.9, 0.99), eps=cfg.adam_eps)
+    return torch.optim.Adam([{"params": field.grids(), "lr": cfg.lr_grid, "eps": cfg.adam_eps},
                              {"params": field.mlp.parameters(), "lr": cfg.lr_mlp}], betas=(0.9, 0.99), fused=True)
 
 
@@ -207,10 +207,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
-           "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
+           "adam_eps": 1e-8, "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
     new = cfg.to_json()
-    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "stop_transmittance",
-                "grid_start", "grid_final", "step_ratio", "upsample_at",
+    for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "adam_eps",
+                "stop_transmittance", "grid_start", "grid_final", "step_ratio", "upsample_at",
                 "sh_degree", "sh_scale", "frames", "windows", "statistic", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
