@@ -108,6 +108,21 @@ def test_resume_gives_the_same_field(dataset, tmp_path):
     assert torch.equal(ca["state"]["sh"], cb["state"]["sh"])  # the view-dependent grid too
 
 
+def test_resume_with_error_rays_gives_the_same_field(dataset, tmp_path):
+    """``--error-rays``: the error map and the sums since its last refresh travel in the checkpoint, so a run
+    interrupted between two refreshes (errorrays.REFRESH = 50) draws on as the uninterrupted one."""
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    train(_cfg(dataset, iters=90, error_rays=0.5), a, progress=False, log=lambda m: None)
+    train(_cfg(dataset, iters=90, error_rays=0.5), b, progress=False, log=lambda m: None, stop_at=65)
+    train(_cfg(dataset, iters=90, error_rays=0.5), b, progress=False, log=lambda m: None)
+    train(_cfg(dataset, iters=90), c, progress=False, log=lambda m: None)
+    ca, cb, cc = (torch.load(r / "checkpoint.pt", weights_only=False) for r in (a, b, c))
+    assert torch.equal(ca["state"]["grid"], cb["state"]["grid"]) and torch.equal(ca["state"]["sh"], cb["state"]["sh"])
+    assert torch.equal(ca["error_rays"]["error"], cb["error_rays"]["error"])
+    assert (ca["error_rays"]["error"] >= 0).any() and "error_rays" not in cc
+    assert not torch.equal(ca["state"]["grid"], cc["state"]["grid"])  # the mined rays changed the run
+
+
 def test_resume_after_sigkill(dataset, tmp_path):
     run = tmp_path / "k"
     cmd = [sys.executable, "-m", "spikenerf.cli", "train", str(dataset), "--iters", "40", "--device", "cpu",
@@ -230,7 +245,9 @@ def test_learning_rate_factor_decays_to_the_fraction_asked():
 @pytest.mark.parametrize("option, value, key, bad", [("--lr-grid", "0.3", "lr_grid", ("0",)),
                                                      ("--lr-decay", "0.5", "lr_decay", ("0", "1.5")),
                                                      ("--stop-transmittance", "0", "stop_transmittance", ("-1", "1.5")),
-                                                     ("--step-ratio", "1", "step_ratio", ("0", "3"))])
+                                                     ("--step-ratio", "1", "step_ratio", ("0", "3")),
+                                                     ("--adam-eps", "1e-12", "adam_eps", ("0", "-1")),
+                                                     ("--error-rays", "0.5", "error_rays", ("-0.1", "1"))])
 def test_run_options_from_the_command_line_and_resume_guard(dataset, tmp_path, option, value, key, bad):
     run = tmp_path / "lr"
     args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]

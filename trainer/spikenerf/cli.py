@@ -76,6 +76,10 @@ def _fractions(ctx, param, value: str) -> tuple:
 @click.option("--adam-eps", default=TrainConfig.adam_eps, show_default=True, type=click.FloatRange(min=0, min_open=True),
               help="Adam's eps for the voxel grids: a voxel whose gradient's RMS is below it steps by less than the "
                    "learning rate.")
+@click.option("--error-rays", default=TrainConfig.error_rays, show_default=True,
+              type=click.FloatRange(min=0, max=1, max_open=True),
+              help="The fraction of each step's rays drawn where the field's error has been high (tiles of an error "
+                   "map); the rest are drawn uniformly. 0 = all uniform.")
 @click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
               help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
 @click.option("--grid-final", default=TrainConfig.grid_final, show_default=True, type=click.IntRange(min=0),
@@ -111,7 +115,7 @@ def _fractions(ctx, param, value: str) -> tuple:
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, windows, sensor_maps, out, seed, batch_rays, lr_grid,
-          lr_decay, adam_eps, sh_degree,
+          lr_decay, adam_eps, error_rays, sh_degree,
           grid_final, fit_box, space, stop_transmittance, step_ratio, upsample_at, tv_weight, tv_points, lazy_above,
           checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
@@ -121,7 +125,7 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
                       frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
-                      adam_eps=adam_eps, sh_degree=sh_degree,
+                      adam_eps=adam_eps, error_rays=error_rays, sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, stop_transmittance=stop_transmittance,
                       step_ratio=step_ratio, upsample_at=upsample_at, tv_weight=tv_weight, tv_points=tv_points,
                       space=space, lazy_above=lazy_above,

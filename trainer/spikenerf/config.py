@@ -51,6 +51,7 @@ class TrainConfig:
     lr_mlp: float = 2e-3
     lr_decay: float = 0.1  # the learning rates decay exponentially to this fraction of their start over the run
     adam_eps: float = 1e-8  # Adam's eps for the voxel grids (the MLP keeps 1e-8)
+    error_rays: float = 0.0  # the fraction of each step's rays drawn where the error is high (errorrays.py)
     grid_start: int = 32
     grid_final: int = 0  # 0 = chosen from the image size
     # the sample step along a ray in voxels of the current grid (model.GridField.step_ratio)

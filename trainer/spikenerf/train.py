@@ -22,6 +22,7 @@ from .config import SPACES, TrainConfig, default_iters
 from .data import load_dataset
 from .methods import METHODS
 from .model import GridField
+from .errorrays import ErrorRays
 from .optim import LazyGridAdam
 from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
 from .targets import Targets, build_targets, count_windows
@@ -102,12 +103,17 @@ class Batch:
         if tg.kind == "paper":  # the published fixed-pattern maps (Nl, Nd, D_light) [P]
             self.paper_maps = neuron.paper_fpn_maps(self.resp, self.dark, tg.lux_to_rate)
 
-    def draw(self, n: int, gen: torch.Generator):
+    def draw(self, n: int, gen: torch.Generator, mined: ErrorRays | None = None):
         """Image and pixel indices ``[n]`` and sample offsets ``[n]``, drawn on the CPU from ``gen``
-        (so every device draws the same) and then moved to the run's device."""
+        (so every device draws the same) and then moved to the run's device. With ``mined`` (``--error-rays``)
+        the last ``mined.rays(n)`` rays are drawn from its error map, the others uniformly."""
         N, P = self.values.shape
-        draws = (torch.randint(0, N, (n,), generator=gen), torch.randint(0, P, (n,), generator=gen),
+        k = mined.rays(n) if mined is not None else 0
+        draws = (torch.randint(0, N, (n - k,), generator=gen), torch.randint(0, P, (n - k,), generator=gen),
                  torch.rand(n, generator=gen))
+        if k:
+            image, pixel = mined.draw(k, gen)
+            draws = (torch.cat([draws[0], image]), torch.cat([draws[1], pixel]), draws[2])
         if self.device.type == "cuda":  # from page-locked memory, without waiting for the device
             return tuple(t.pin_memory().to(self.device, non_blocking=True) for t in draws)
         return tuple(t.to(self.device) for t in draws)
@@ -207,10 +213,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
-           "adam_eps": 1e-8, "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
+           "adam_eps": 1e-8, "error_rays": 0.0, "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "adam_eps",
-                "stop_transmittance", "grid_start", "grid_final", "step_ratio", "upsample_at",
+                "error_rays", "stop_transmittance", "grid_start", "grid_final", "step_ratio", "upsample_at",
                 "sh_degree", "sh_scale", "frames", "windows", "statistic", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
@@ -272,8 +278,9 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     opt = make_optimizer(field, cfg)
     schedule = grid_schedule(cfg, W)
     legacy_windows = count_windows(ds, method, H, W, cfg.frames, method.windows)  # runs from before --windows
+    mined = ErrorRays(batch.values.shape[0], H, W, cfg.error_rays, device) if cfg.error_rays > 0 else None
     field, opt, start, train_s, space = _resume(ck_path, cfg, (ds.frames, legacy_windows), device, field, opt, space,
-                                                log)
+                                                log, mined)
     write_json_atomic(out / "config.json", {**cfg.to_json(), "device_used": str(device), "height": H, "width": W,
                                             "holdout": ds.holdout, "heldout": ds.heldout, "grid_schedule": schedule,
                                             "intensity": ds.intensity})
@@ -281,7 +288,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
         log(f"{out}: already trained ({start} iterations)")
         return ck_path
     _loop(cfg, method, field, opt, batch, ds.intensity, (H, W, focal, ds.background, space), schedule, start,
-          train_s, out, progress, stop_at or cfg.iters)
+          train_s, out, progress, stop_at or cfg.iters, mined)
     return ck_path
 
 
@@ -295,9 +302,10 @@ def _resolution(ds, res: int) -> tuple[int, int]:
     return ds.height // f, res
 
 
-def _resume(ck_path: Path, cfg: TrainConfig, legacy: tuple[int, int], device, field, opt, space, log):
+def _resume(ck_path: Path, cfg: TrainConfig, legacy: tuple[int, int], device, field, opt, space, log, mined=None):
     """(field, optimizer, start iteration, training seconds, space): from the checkpoint if there is
-    one (its field keeps the space it was made in: one from before NDC existed stays in the world cube)."""
+    one (its field keeps the space it was made in: one from before NDC existed stays in the world cube).
+    ``mined`` (``--error-rays``) takes the checkpoint's error map."""
     if not ck_path.is_file():
         return field, opt, 0, 0.0, space
     ck = load_checkpoint(ck_path, device)
@@ -305,6 +313,8 @@ def _resume(ck_path: Path, cfg: TrainConfig, legacy: tuple[int, int], device, fi
     field = field_from_checkpoint(ck, device)
     opt = make_optimizer(field, cfg)
     opt.load_state_dict(ck["optimizer"])
+    if mined is not None:
+        mined.load_state_dict(ck["error_rays"])
     log(f"resuming from {ck_path} at iteration {int(ck['iteration'])}")
     return field, opt, int(ck["iteration"]), float(ck["train_seconds"]), checkpoint_space(ck)
 
@@ -318,7 +328,8 @@ def _frames(ds, frames: int | None) -> int:
     return int(frames)
 
 
-def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress, stop_at):
+def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress, stop_at,
+          mined=None):
     H, W, focal, background, space = cam
     ck_path = out / CHECKPOINT
     extra = {"height": H, "width": W, "focal_px": focal, "intensity": intensity, "background": background}
@@ -336,7 +347,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         if it >= cfg.occupancy_after and it % cfg.occupancy_every == 0:
             field.update_occupancy(cfg.occupancy_threshold)
         gen = iteration_generator(cfg.seed, it)
-        img, pix, jitter = batch.draw(cfg.batch_rays, gen)
+        img, pix, jitter = batch.draw(cfg.batch_rays, gen, mined)
         o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
         if space is None:
             # the composite the sensor model sees
@@ -348,6 +359,9 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
             tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)
             loss = loss + cfg.tv_weight * tv
         guard.note(loss, it, bar)
+        if mined is not None:
+            mined.note(img, pix, pred, obs)
+            mined.step_done(it)
         for g, base in zip(opt.param_groups, (cfg.lr_grid, cfg.lr_mlp)):
             g["lr"] = base * learning_rate_factor(it, cfg.iters, cfg.lr_decay)
         opt.zero_grad(set_to_none=False)  # the grids' gradients stay allocated: model._CornerRead adds into them
@@ -366,7 +380,8 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
                 now - last_save > max(cfg.checkpoint_every_s, 20 * save_s):
             guard.check(bar)
             _check_finite(field, it, ck_path, bar)
-            save_checkpoint(ck_path, field, opt, cfg, done, train_s + now - t0, extra)
+            save_checkpoint(ck_path, field, opt, cfg, done, train_s + now - t0,
+                            extra if mined is None else {**extra, "error_rays": mined.state_dict()})
             last_save = time.perf_counter()
             save_s = last_save - now
     bar.close()
