@@ -48,7 +48,7 @@ class ErrorRays:
         y, x = torch.meshgrid(torch.arange(height), torch.arange(width), indexing="ij")
         tile = ((y // t) * (-(-width // t)) + (x // t)).reshape(-1)  # pixel -> its tile
         self.tiles = int(tile.max()) + 1
-        self.tile_of = tile.to(self.device)
+        self.tile_of, self.tile_cpu = tile.to(self.device), tile
         count = torch.bincount(tile, minlength=self.tiles)
         self.order = torch.argsort(tile, stable=True)  # the pixels, tile by tile
         self.start, self.count = torch.cumsum(count, 0) - count, count
@@ -99,7 +99,20 @@ class ErrorRays:
         weight = torch.where(seen, self.error, self.error[seen].mean())
         if not weight.sum() > 0:  # no error anywhere: uniform over the tiles
             weight = torch.ones_like(weight)
+        # a pixel's chance under the map, times the number of pixels: its tile's share over the tile's pixels
+        images = weight.numel() // self.tiles
+        self.boost = weight / weight.sum() * (images * int(self.count.sum())) / self.count.repeat(images).double()
         return torch.cumsum(weight, 0)
+
+    def weights(self, image: torch.Tensor, pixel: torch.Tensor, fraction: float) -> torch.Tensor:
+        """The rays' weights ``[n]`` (CPU, float32) in the loss's mean: ``1 / (1 - F + F * b)``, ``F`` the
+        ``fraction`` of the step's rays drawn from the map, ``b`` a pixel's chance of being drawn from the map
+        over its chance when drawn uniformly. Every ray of the step counts as drawn from the mixture of the
+        two (uniform with ``1 - F``, the map with ``F``), so the weighted mean
+        is, in expectation, the mean over all pixels: the map changes which rays a step reads, not what the
+        loss asks of the field."""
+        boost = self.boost[image * self.tiles + self.tile_cpu[pixel]]
+        return (1.0 / (1.0 - fraction + fraction * boost)).float()
 
     def step_done(self, it: int) -> None:
         """Called after iteration ``it``'s errors were noted: refresh every ``REFRESH`` steps."""

@@ -105,8 +105,10 @@ class Batch:
 
     def draw(self, n: int, gen: torch.Generator, mined: ErrorRays | None = None):
         """Image and pixel indices ``[n]`` and sample offsets ``[n]``, drawn on the CPU from ``gen``
-        (so every device draws the same) and then moved to the run's device. With ``mined`` (``--error-rays``)
-        the last ``mined.rays(n)`` rays are drawn from its error map, the others uniformly."""
+        (so every device draws the same) and then moved to the run's device, and the rays' weights ``[n]``
+        in the loss (None: all 1). With ``mined`` (``--error-rays``) the last ``mined.rays(n)`` rays are drawn
+        from its error map, the others uniformly, and the weights undo what the map adds to a ray's chance
+        (ErrorRays.weights)."""
         N, P = self.values.shape
         k = mined.rays(n) if mined is not None else 0
         draws = (torch.randint(0, N, (n - k,), generator=gen), torch.randint(0, P, (n - k,), generator=gen),
@@ -114,22 +116,29 @@ class Batch:
         if k:
             image, pixel = mined.draw(k, gen)
             draws = (torch.cat([draws[0], image]), torch.cat([draws[1], pixel]), draws[2])
+            draws = draws + (mined.weights(draws[0], draws[1], k / n),)
         if self.device.type == "cuda":  # from page-locked memory, without waiting for the device
-            return tuple(t.pin_memory().to(self.device, non_blocking=True) for t in draws)
-        return tuple(t.to(self.device) for t in draws)
+            moved = tuple(t.pin_memory().to(self.device, non_blocking=True) for t in draws)
+            return moved if len(moved) == 4 else moved + (None,)
+        moved = tuple(t.to(self.device) for t in draws)
+        return moved if len(moved) == 4 else moved + (None,)
 
 
-def method_loss(method, x, img, pix, batch: Batch, intensity: float):
+def method_loss(method, x, img, pix, batch: Batch, intensity: float, weights: torch.Tensor | None = None):
     """(loss, prediction, observation): the last two ``[n]`` in comparable units (radiance-like; for
-    ``spikenerf-paper`` the gamma-encoded rate of its targets), for the progress bar's PSNR."""
+    ``spikenerf-paper`` the gamma-encoded rate of its targets), for the progress bar's PSNR. ``weights``
+    ``[n]``: the rays' weights in the mean (``--error-rays``: ErrorRays.weights), else 1."""
+    def mean(terms):
+        return terms.mean() if weights is None else (terms * weights).mean()
+
     obs = batch.values[img, pix]
     if batch.tg.kind == "radiance":
         if method.loss == "srgb":
-            return (linear_to_srgb(x) - linear_to_srgb(obs)).square().mean(), x, obs
-        return (x - obs).square().mean(), x, obs
+            return mean((linear_to_srgb(x) - linear_to_srgb(obs)).square()), x, obs
+        return mean((x - obs).square()), x, obs
     if batch.tg.kind == "paper":
         pred = neuron.paper_pixel(x, intensity, *(m[pix] for m in batch.paper_maps))
-        return (pred - obs).square().mean(), pred, obs
+        return mean((pred - obs).square()), pred, obs
     tg, frames = batch.tg, batch.frames[img]
     if method.exact_sensor and tg.sensor_kind == "rsir":
         lam = neuron.rsir_rate(x, intensity, batch.resp[pix], batch.dark[pix])
@@ -141,9 +150,9 @@ def method_loss(method, x, img, pix, batch: Batch, intensity: float):
         exact = method.exact_sensor
         var = neuron.count_variance(mu.detach(), tg.electrons if exact else 0.0,
                                     jitter=tg.threshold_jitter if exact else 0.0)
-        loss = ((mu - obs).square() / (6.0 * var) * to_x.square()).mean()
+        loss = mean((mu - obs).square() / (6.0 * var) * to_x.square())
     else:
-        loss = ((mu - obs) * to_x).square().mean()
+        loss = mean(((mu - obs) * to_x).square())
     return loss, mu * to_x, obs * to_x
 
 
@@ -347,14 +356,14 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         if it >= cfg.occupancy_after and it % cfg.occupancy_every == 0:
             field.update_occupancy(cfg.occupancy_threshold)
         gen = iteration_generator(cfg.seed, it)
-        img, pix, jitter = batch.draw(cfg.batch_rays, gen, mined)
+        img, pix, jitter, weights = batch.draw(cfg.batch_rays, gen, mined)
         o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
         if space is None:
             # the composite the sensor model sees
             x, _ = render_rays(field, o, d, jitter, background, stop=cfg.stop_transmittance)
         else:  # sampled uniformly in NDC from the near plane, composited as evaluation and rendering do
             (x, _), _ = render_ndc_rays(field, space, o, d, jitter, background, stop=cfg.stop_transmittance)
-        loss, pred, obs = method_loss(method, x, img, pix, batch, intensity)
+        loss, pred, obs = method_loss(method, x, img, pix, batch, intensity, weights)
         if cfg.tv_weight > 0:
             tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)
             loss = loss + cfg.tv_weight * tv
