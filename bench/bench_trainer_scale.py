@@ -21,6 +21,7 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--converge]   # also 3 x the iterations at both resolutions: is the 1 x run converged?
         [--runs 100:3000,400:9000,400:27000]   # the runs instead (the first two: the ratio's pair)
         [--runs 100:9000,400:27000:1,400:81000:1]   # a third field: that run's --step-ratio (default: the trainer's, 0.5)
+        [--runs 100:9000,400:9000:0.5:0.5]   # a fourth: its --error-rays (default: the trainer's, 0)
         [--method oracle]   # another method (default spikelik)
         [--json FILE]  # the rows and the load averages, for the record
         [--device cuda]  # train and evaluate on the GPU (its name and peak GPU memory join the rows)
@@ -45,7 +46,8 @@ CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its it
 
 
 def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool,
-          method: str = "spikelik", device: str = "cpu", step_ratio: float = TrainConfig.step_ratio) -> dict:
+          method: str = "spikelik", device: str = "cpu", step_ratio: float = TrainConfig.step_ratio,
+          error_rays: float = TrainConfig.error_rays) -> dict:
     """Train and evaluate one run in this process; the figures as a dict."""
     from spikenerf.eval import evaluate
     from spikenerf.train import train
@@ -53,7 +55,7 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
     # --sparse: the lazy optimiser for grids above 128^3 (the 400 x 400 run's final grid)
     lazy = {"lazy_above": 128 ** 3} if sparse else {}
     cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device=device, method=method,
-                      step_ratio=step_ratio, **lazy)
+                      step_ratio=step_ratio, error_rays=error_rays, **lazy)
     t0 = time.perf_counter()
     ck = train(cfg, out, progress=False, log=lambda m: None)
     t_train = time.perf_counter() - t0
@@ -65,17 +67,18 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
         import torch
         gpu["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
     return {"method": method, "resolution": resolution, "iters": iters, "step_ratio": cfg.step_ratio,
+            "error_rays": cfg.error_rays,
             "device": device, **gpu,
             "train_s": t_train, "eval_s": t_eval, "views": m["views"],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
             "checkpoint_mb": ck.stat().st_size / 1e6, "psnr": m["psnr"], "psnr_object": m["psnr_object"]}
 
 
-def run_child(args, resolution: int, iters: int, out: Path, step_ratio: float) -> dict:
+def run_child(args, resolution: int, iters: int, out: Path, step_ratio: float, error_rays: float) -> dict:
     cmd = [sys.executable, __file__, args.dataset, "--iters", str(iters), "--child", str(resolution),
            "--out", str(out)] + (["--eval-views", str(args.eval_views)] if args.eval_views else []) + \
           (["--sparse"] if args.sparse else []) + ["--method", args.method, "--device", args.device,
-                                                   "--step-ratio", str(step_ratio)]
+                                                   "--step-ratio", str(step_ratio), "--error-rays", str(error_rays)]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         sys.exit(f"the {resolution} x {resolution} run ({iters} iterations) failed: {res.stderr.strip().splitlines()[-1:]}")
@@ -83,18 +86,27 @@ def run_child(args, resolution: int, iters: int, out: Path, step_ratio: float) -
 
 
 def tripled(rows: list[dict], run: dict) -> dict | None:
-    """The run among ``rows`` at the same resolution and sample step with three times ``run``'s iterations, if any."""
+    """The run among ``rows`` at the same resolution, sample step and error-guided share with three times ``run``'s
+    iterations, if any."""
     return next((q for q in rows if q["resolution"] == run["resolution"] and _step(q) == _step(run)
-                 and q["iters"] == 3 * run["iters"]), None)
+                 and _mined(q) == _mined(run) and q["iters"] == 3 * run["iters"]), None)
 
 
 def _step(row: dict) -> float:
     return row.get("step_ratio", 0.5)  # rows from before the option: the trainer's step then, 0.5 voxel
 
 
+def _mined(row: dict) -> float:
+    return row.get("error_rays", 0.0)  # rows from before the option: every ray uniform
+
+
 def _key(row: dict) -> tuple:
-    """A run's identity within one dataset: (resolution, sample step, iterations)."""
-    return row["resolution"], _step(row), row["iters"]
+    """A run's identity within one dataset: (resolution, sample step, error-guided share, iterations)."""
+    return row["resolution"], _step(row), _mined(row), row["iters"]
+
+
+def _setting(row: dict) -> str:
+    return f"step {_step(row):g}" + (f", error rays {_mined(row):g}" if _mined(row) else "")
 
 
 def _gaps(rows: list[dict]):
@@ -104,14 +116,14 @@ def _gaps(rows: list[dict]):
         long = tripled(rows, r)
         if long is not None:
             gap = long["psnr_object"] - r["psnr_object"]
-            yield r, gap, (f"{r['resolution']} x {r['resolution']} (step {_step(r):g}): object PSNR at {long['iters']} "
+            yield r, gap, (f"{r['resolution']} x {r['resolution']} ({_setting(r)}): object PSNR at {long['iters']} "
                            f"minus at {r['iters']} iterations: {gap:+.2f} dB (converged within {CONVERGED} dB: "
                            f"{'yes' if gap <= CONVERGED else 'NO'})")
 
 
 def converged_runs(rows: list[dict]) -> dict:
     """{resolution: the run with the least training time whose object PSNR is within CONVERGED dB of
-    the same resolution's (and sample step's) run with three times its iterations} (a resolution with no
+    the same resolution's (and setting's) run with three times its iterations} (a resolution with no
     such pair: absent)."""
     out = {}
     for r in sorted(rows, key=lambda r: r["train_s"]):
@@ -122,10 +134,10 @@ def converged_runs(rows: list[dict]) -> dict:
 
 
 def table(rows: list[dict]) -> None:
-    print(f"{'run':>10} {'step':>4} {'iters':>6} {'train s':>8} {'eval s':>7} {'views':>5} {'peak RSS MB':>11} "
+    print(f"{'run':>10} {'step':>4} {'mined':>5} {'iters':>6} {'train s':>8} {'eval s':>7} {'views':>5} {'peak RSS MB':>11} "
           f"{'checkpoint MB':>13} {'PSNR':>6} {'object':>6} {'load at end':>11}")
     for r in rows:
-        print(f"{r['resolution']:>4} x {r['resolution']:<3} {_step(r):>4g} {r['iters']:>6} {r['train_s']:>8.1f} {r['eval_s']:>7.1f} "
+        print(f"{r['resolution']:>4} x {r['resolution']:<3} {_step(r):>4g} {_mined(r):>5g} {r['iters']:>6} {r['train_s']:>8.1f} {r['eval_s']:>7.1f} "
               f"{r['views']:>5} {r['peak_rss_mb']:>11.0f} {r['checkpoint_mb']:>13.1f} {r['psnr']:>6.2f} "
               f"{r['psnr_object']:>6.2f} {r.get('load_after', float('nan')):>11.2f}")
     a = rows[0]
@@ -140,7 +152,7 @@ def table(rows: list[dict]) -> None:
     hi, lo = max(r["resolution"] for r in rows), min(r["resolution"] for r in rows)
     if hi in conv:
         c = conv[hi]
-        print(f"{hi} x {hi} converged at {c['iters']} iterations (step {_step(c):g}) in {c['train_s']:.0f} s: {c['train_s'] / a['train_s']:.2f} "
+        print(f"{hi} x {hi} converged at {c['iters']} iterations ({_setting(c)}) in {c['train_s']:.0f} s: {c['train_s'] / a['train_s']:.2f} "
               f"times the {lo} x {lo} run of {a['iters']} iterations (target <= 3: "
               f"{'met' if c['train_s'] <= 3 * a['train_s'] else 'NOT met'})"
               + (f", {c['train_s'] / conv[lo]['train_s']:.2f} times the {lo} x {lo} run converged at {conv[lo]['iters']}"
@@ -170,7 +182,8 @@ def across(files: list[dict], names: list[str]) -> None:
         if gap <= CONVERGED:
             conv.setdefault(r["resolution"], _key(r))  # the fewest iterations converged at this size
     for res, k in sorted(conv.items()):
-        print(f"  {res} x {res}: converged at {k[2]} iterations (step {k[1]:g})")
+        print(f"  {res} x {res}: converged at {k[3]} iterations (step {k[1]:g}"
+              + (f", error rays {k[2]:g})" if k[2] else ")"))
     if len(conv) < 2:
         print("  not both sizes shown converged: no ratio of converged runs")
         return
@@ -186,16 +199,17 @@ def across(files: list[dict], names: list[str]) -> None:
     print("  no file holds both converged runs: no side-by-side ratio")
 
 
-def _planned(run: str) -> tuple[int, int, float]:
-    """``RES:ITERS`` or ``RES:ITERS:STEP_RATIO`` -> (resolution, iterations, step ratio; the trainer's default
-    when not given)."""
+def _planned(run: str) -> tuple[int, int, float, float]:
+    """``RES:ITERS[:STEP_RATIO[:ERROR_RAYS]]`` -> (resolution, iterations, step ratio, error-guided share; the
+    trainer's defaults where not given)."""
     parts = run.split(":")
     try:
-        if len(parts) not in (2, 3):
+        if len(parts) not in (2, 3, 4):
             raise ValueError
-        return int(parts[0]), int(parts[1]), float(parts[2]) if len(parts) == 3 else TrainConfig.step_ratio
+        return (int(parts[0]), int(parts[1]), float(parts[2]) if len(parts) >= 3 else TrainConfig.step_ratio,
+                float(parts[3]) if len(parts) == 4 else TrainConfig.error_rays)
     except ValueError:
-        sys.exit(f"--runs: {run!r} is not RES:ITERS or RES:ITERS:STEP_RATIO")
+        sys.exit(f"--runs: {run!r} is not RES:ITERS[:STEP_RATIO[:ERROR_RAYS]]")
 
 
 def main() -> None:
@@ -220,6 +234,8 @@ def main() -> None:
     ap.add_argument("--child", type=int, default=None, help=argparse.SUPPRESS)
     ap.add_argument("--step-ratio", type=float, default=TrainConfig.step_ratio,
                     help=argparse.SUPPRESS)  # the child's; --runs sets it
+    ap.add_argument("--error-rays", type=float, default=TrainConfig.error_rays,
+                    help=argparse.SUPPRESS)  # the child's; --runs sets it
     args = ap.parse_args()
     if args.table:
         files = [json.loads(f.read_text()) for f in args.table]
@@ -236,7 +252,7 @@ def main() -> None:
         ap.error("a dataset is needed (or --table FILE)")
     if args.child:
         print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse,
-                               args.method, args.device, args.step_ratio)))
+                               args.method, args.device, args.step_ratio, args.error_rays)))
         return
     load0 = os.getloadavg()
     plan_text = f"runs {args.runs}" if args.runs else f"{args.iters or 'the default'} iterations"
@@ -249,12 +265,14 @@ def main() -> None:
         if args.runs:
             plan = [_planned(run) for run in args.runs.split(",")]
         else:
-            plan = [(res, args.iters or default_iters(res, res), TrainConfig.step_ratio) for res in (100, 400)]
+            plan = [(res, args.iters or default_iters(res, res), TrainConfig.step_ratio, TrainConfig.error_rays)
+                    for res in (100, 400)]
             if args.converge:
-                plan += [(res, 3 * iters, step) for res, iters, step in reversed(plan)]
+                plan += [(res, 3 * iters, step, mined) for res, iters, step, mined in reversed(plan)]
         rows = []
-        for res, iters, step in plan:
-            rows.append(run_child(args, res, iters, base / f"run{res}_{iters}_step{step:g}", step))
+        for res, iters, step, mined in plan:
+            rows.append(run_child(args, res, iters, base / f"run{res}_{iters}_step{step:g}_mined{mined:g}", step,
+                                  mined))
             rows[-1]["load_after"] = round(os.getloadavg()[0], 2)  # the 1-minute load as the run ended
             print(f"  {res} x {res}, {iters} iterations: {rows[-1]['train_s']:.0f} s, object PSNR "
                   f"{rows[-1]['psnr_object']:.2f} (load {rows[-1]['load_after']:.2f})", flush=True)

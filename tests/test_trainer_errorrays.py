@@ -93,3 +93,28 @@ def test_state_round_trip_draws_the_same():
         ErrorRays(3, 20, 20, 0.5, "cpu").load_state_dict(er.state_dict())
     with pytest.raises(ValueError):
         ErrorRays(1, 4, 4, 1.0, "cpu")
+
+
+def test_weights_keep_the_loss_unbiased():
+    """A step's rays drawn from the mixture (uniform with 1 - F, the map with F) and weighted by
+    ErrorRays.weights average a per-pixel loss to its mean over all pixels; unweighted they would not."""
+    H = W = 20
+    er = ErrorRays(2, H, W, 0.5, "cpu")
+    gen = torch.Generator().manual_seed(6)
+    img = torch.arange(2).repeat_interleave(H * W)
+    pix = torch.arange(H * W).repeat(2)
+    pred = torch.full((img.numel(),), 0.5)
+    obs = pred + 0.3 * (torch.rand(img.numel(), generator=gen) < 0.1)  # a tenth of the pixels are wrong
+    er.note(img, pix, pred, obs)
+    er.refresh()
+    loss = (pred - obs).square().reshape(2, H * W).double()  # what each pixel's ray would add to the loss
+    n, k = 400_000, 200_000
+    draw = torch.Generator().manual_seed(7)
+    u_img, u_pix = torch.randint(0, 2, (n - k,), generator=draw), torch.randint(0, H * W, (n - k,), generator=draw)
+    m_img, m_pix = er.draw(k, draw)
+    i, p = torch.cat([u_img, m_img]), torch.cat([u_pix, m_pix])
+    w = er.weights(i, p, k / n).double()
+    assert float(w.max()) <= 2.0 + 1e-6  # at most 1 / (1 - F)
+    exact = float(loss.mean())
+    weighted, unweighted = float((loss[i, p] * w).mean()), float(loss[i, p].mean())
+    assert abs(weighted - exact) < 0.03 * exact and unweighted > 4 * exact
