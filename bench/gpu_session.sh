@@ -40,6 +40,9 @@
 #   conv32k    spikelik with 32768 rays a step for 45567 iterations, three times the 15189 that took 153 s on an
 #              H200 (third lease): whether 15189 are converged (0.3 dB), i.e. how far the 2-minute target
 #              is; about 460 s of training alone; a run the budget cuts resumes in a later call
+#   errorrays  spikelik at 400 x 400 with --error-rays 0.5 (docs/trainer.md "Error-guided rays") for 9000 and
+#              27000 iterations at the default 2048 rays a step (bench_trainer_scale.py --device cuda, 25 views;
+#              needs the spikelik stage's dataset): is the 9000-iteration run converged (0.3 dB), and in what time
 #   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
 #              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
 #              whether its fewer steps make it faster on the GPU)
@@ -53,7 +56,7 @@ BUDGET=${3:-540}
 shift $(( $# < 3 ? $# : 3 ))
 STAGES=${*:-tests spikelik profile baselines converge}
 for st in $STAGES; do
-    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|conv32k|fill) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|conv32k|fill|errorrays) ;; *) echo "unknown stage $st"; exit 2 ;; esac
 done
 T0=$(date +%s)
 mkdir -p "$OUT"
@@ -133,6 +136,10 @@ for st in $STAGES; do
               tail -n +"$(( $(wc -l < bench/results/protocol.jsonl) + 1 ))" "$F" > "$OUT/protocol_gpu.jsonl" ;;
         stop) if [ -d "$DATA" ]; then stage stop_ab bash -c stop_ab
               else echo "stop: no $DATA here (run the spikelik stage first)"; fi ;;
+        errorrays) if [ -d "$DATA" ]; then stage trainer_scale_errorrays python3 bench/bench_trainer_scale.py "$DATA" \
+                       --device cuda --eval-views 25 --runs 400:9000:0.5:0.5,400:27000:0.5:0.5 \
+                       --json "$OUT/trainer_scale_errorrays.json"
+                   else echo "errorrays: no $DATA here (run the spikelik stage first)"; fi ;;
     esac
 done
 if [ -n "${REF_MANIFEST:-}" ] && [ -f $DATA/manifest.json ]; then  # the dataset made here against one made elsewhere

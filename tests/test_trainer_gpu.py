@@ -59,6 +59,20 @@ def test_a_cuda_run_evaluates_on_the_cpu_and_back(dataset, tmp_path):
     _run(dataset, tmp_path / "gpu", "cpu", iters=60)  # a CUDA checkpoint resumed on the CPU
 
 
+def test_error_rays_on_cuda(dataset, tmp_path):
+    """``--error-rays`` on the GPU: its errors are summed there, the map and the draws made on the CPU; the
+    run trains like the CPU's (float noise can move a draw, not the field), and resumes on the CPU."""
+    cpu = _run(dataset, tmp_path / "cpu", "cpu", iters=90, error_rays=0.5)
+    gpu = _run(dataset, tmp_path / "gpu", "cuda", iters=90, error_rays=0.5)
+    for key in ("grid", "sh"):
+        a, b = cpu["state"][key], gpu["state"][key]
+        assert torch.isfinite(b).all() and (a - b).abs().max() < 0.05 * (a.abs().max() + 1), key
+    ea, eb = cpu["error_rays"]["error"], gpu["error_rays"]["error"]
+    assert ea.shape == eb.shape and (eb >= 0).any() and torch.isfinite(eb).all()
+    resumed = _run(dataset, tmp_path / "gpu", "cpu", iters=120, error_rays=0.5)  # the CUDA run, on the CPU
+    assert resumed["iteration"] == 120
+
+
 def test_sensor_models_agree_on_cuda():
     g = torch.Generator().manual_seed(3)
     x = torch.rand(4096, generator=g)
