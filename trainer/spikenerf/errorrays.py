@@ -15,6 +15,11 @@ radiance-like units (train.method_loss): a spike count's variance grows with its
 squared error would draw the brightest, noisiest pixels (the white background), not the ones the
 field gets wrong (docs/trainer.md, "Error-guided rays").
 
+Each ray of a step counts as drawn from the mixture of the two draws (uniform with ``1 - F``, the map with
+``F``), and its term in the loss's mean is weighted by ``1 / (1 - F + F b)``, ``b`` its pixel's chance under the
+map over its chance under the uniform draw (:meth:`ErrorRays.weights`): in expectation the weighted mean is the
+mean over all pixels, so the map changes which rays a step reads, not what the loss asks of the field.
+
 Determinism: the rays are drawn on the CPU from the step's generator, as the uniform ones are. The
 errors are summed on the run's device as integers (the error times ``2**SCALE_BITS``, rounded; the
 count as an integer), so the sums do not depend on the order a GPU adds them in; the map and its
@@ -56,7 +61,8 @@ class ErrorRays:
         self.error = torch.full((n,), -1.0, dtype=torch.float64)  # -1: never seen
         self.sums = torch.zeros(n, dtype=torch.int64, device=self.device)
         self.hits = torch.zeros(n, dtype=torch.int64, device=self.device)
-        self.cdf: torch.Tensor | None = None
+        self.cdf: torch.Tensor | None = None  # the tiles' cumulative weights (None until a tile is seen)
+        self.boost: torch.Tensor | None = None  # each tile's pixels' chance under the map over the uniform one
 
     def rays(self, n: int) -> int:
         """How many of a step's ``n`` rays are drawn from the map (none before its first refresh)."""
@@ -92,7 +98,7 @@ class ErrorRays:
         self.cdf = self._distribution()
 
     def _distribution(self) -> torch.Tensor | None:
-        """The cumulative weights of the tiles (None while no tile has been seen)."""
+        """The cumulative weights of the tiles (None while no tile has been seen); sets :attr:`boost`."""
         seen = self.error >= 0
         if not seen.any():
             return None
@@ -107,10 +113,7 @@ class ErrorRays:
     def weights(self, image: torch.Tensor, pixel: torch.Tensor, fraction: float) -> torch.Tensor:
         """The rays' weights ``[n]`` (CPU, float32) in the loss's mean: ``1 / (1 - F + F * b)``, ``F`` the
         ``fraction`` of the step's rays drawn from the map, ``b`` a pixel's chance of being drawn from the map
-        over its chance when drawn uniformly. Every ray of the step counts as drawn from the mixture of the
-        two (uniform with ``1 - F``, the map with ``F``), so the weighted mean
-        is, in expectation, the mean over all pixels: the map changes which rays a step reads, not what the
-        loss asks of the field."""
+        over its chance when drawn uniformly (the module docstring)."""
         boost = self.boost[image * self.tiles + self.tile_cpu[pixel]]
         return (1.0 / (1.0 - fraction + fraction * boost)).float()
 

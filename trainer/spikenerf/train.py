@@ -20,9 +20,9 @@ from spikegen.spikeio import atomic_path, remove_stale_parts, write_json_atomic
 from . import ndc, neuron
 from .config import SPACES, TrainConfig, default_iters
 from .data import load_dataset
+from .errorrays import ErrorRays
 from .methods import METHODS
 from .model import GridField
-from .errorrays import ErrorRays
 from .optim import LazyGridAdam
 from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
 from .targets import Targets, build_targets, count_windows
@@ -111,17 +111,19 @@ class Batch:
         (ErrorRays.weights)."""
         N, P = self.values.shape
         k = mined.rays(n) if mined is not None else 0
-        draws = (torch.randint(0, N, (n - k,), generator=gen), torch.randint(0, P, (n - k,), generator=gen),
-                 torch.rand(n, generator=gen))
+        img, pix = torch.randint(0, N, (n - k,), generator=gen), torch.randint(0, P, (n - k,), generator=gen)
+        jitter, weights = torch.rand(n, generator=gen), None
         if k:
             image, pixel = mined.draw(k, gen)
-            draws = (torch.cat([draws[0], image]), torch.cat([draws[1], pixel]), draws[2])
-            draws = draws + (mined.weights(draws[0], draws[1], k / n),)
+            img, pix = torch.cat([img, image]), torch.cat([pix, pixel])
+            weights = mined.weights(img, pix, k / n)
         if self.device.type == "cuda":  # from page-locked memory, without waiting for the device
-            moved = tuple(t.pin_memory().to(self.device, non_blocking=True) for t in draws)
-            return moved if len(moved) == 4 else moved + (None,)
-        moved = tuple(t.to(self.device) for t in draws)
-        return moved if len(moved) == 4 else moved + (None,)
+            def move(t):
+                return t.pin_memory().to(self.device, non_blocking=True)
+        else:
+            def move(t):
+                return t.to(self.device)
+        return move(img), move(pix), move(jitter), (None if weights is None else move(weights))
 
 
 def method_loss(method, x, img, pix, batch: Batch, intensity: float, weights: torch.Tensor | None = None):
