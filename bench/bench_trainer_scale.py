@@ -180,14 +180,13 @@ def across(files: list[dict], names: list[str]) -> None:
     for r, gap, line in _gaps(list(runs.values())):
         print(f"  {line}")
         if gap <= CONVERGED:
-            conv.setdefault(r["resolution"], _key(r))  # the fewest iterations converged at this size
-    for res, k in sorted(conv.items()):
-        print(f"  {res} x {res}: converged at {k[3]} iterations (step {k[1]:g}"
-              + (f", error rays {k[2]:g})" if k[2] else ")"))
+            conv.setdefault(r["resolution"], r)  # the fewest iterations converged at this size
+    for res, r in sorted(conv.items()):
+        print(f"  {res} x {res}: converged at {r['iters']} iterations ({_setting(r)})")
     if len(conv) < 2:
         print("  not both sizes shown converged: no ratio of converged runs")
         return
-    lo, hi = conv[min(conv)], conv[max(conv)]
+    lo, hi = _key(conv[min(conv)]), _key(conv[max(conv)])
     for f, name in zip(files, names):
         held = {_key(r): r for r in f["rows"]}
         if lo in held and hi in held:

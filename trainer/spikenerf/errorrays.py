@@ -105,9 +105,9 @@ class ErrorRays:
         weight = torch.where(seen, self.error, self.error[seen].mean())
         if not weight.sum() > 0:  # no error anywhere: uniform over the tiles
             weight = torch.ones_like(weight)
-        # a pixel's chance under the map, times the number of pixels: its tile's share over the tile's pixels
-        images = weight.numel() // self.tiles
-        self.boost = weight / weight.sum() * (images * int(self.count.sum())) / self.count.repeat(images).double()
+        # a pixel's chance under the map times the number of pixels: its tile's share over the tile's pixels
+        pixels = weight.numel() // self.tiles * int(self.count.sum())
+        self.boost = ((weight / weight.sum() * pixels).view(-1, self.tiles) / self.count).reshape(-1)
         return torch.cumsum(weight, 0)
 
     def weights(self, image: torch.Tensor, pixel: torch.Tensor, fraction: float) -> torch.Tensor:
