@@ -90,6 +90,13 @@ def test_train_and_eval_learn_the_sphere(dataset, tmp_path):
     assert m["psnr"] == pytest.approx(np.mean([r["psnr"] for r in m["per_view"]]))
     assert m["psnr_object50"] != m["psnr_object"] and m["psnr_background"] > m["psnr_object"]
     assert m["psnr"] > 22 and m["ssim"] > 0.8, m  # a blank white image scores about 9 dB here
+    # the tone: most object pixels (alpha > 0.5) are the grey sphere's inside (its antialiased rim, lighter,
+    # the rest): their bin's truth is the grey's level (0.1 linear, less the PNG's rounding)
+    from spikegen.spikeio import png_to_radiance
+    grey = float(png_to_radiance(np.array([[[0.35, 0.35, 0.35, 1.0]]]))[0][0, 0])
+    filled = max(m["tone"], key=lambda r: r["pixels"])
+    assert filled["truth"] == pytest.approx(grey, rel=0.02) and sum(r["pixels"] for r in m["tone"]) > filled["pixels"]
+    assert abs(filled["bias"]) < 0.1 * grey and "tone_from" in m
     assert (run / "eval_test" / "train_r_0_gt_vs_pred.png").is_file()
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["method"] == "spikelik" and cfg["seed"] == 0
@@ -206,6 +213,38 @@ def test_on_a_gpu_the_loss_check_waits_on_the_device_and_names_the_first_bad_ite
     assert torch.load(run / "checkpoint.pt", weights_only=False)["iteration"] == 7
 
 
+def test_coarse_to_fine_reads_the_small_images_first_grows_and_resumes(dataset, tmp_path, monkeypatch):
+    """``--coarse-to-fine 0.5``: the first half of the steps cast their rays through the 8 x 8 images (the
+    32 x 32 ones box-downsampled 4 times a side), the rest through the 32 x 32 ones; the grid follows an 8 x 8
+    run's schedule over the first half and grows to the final size where the full-size images start; a run
+    interrupted in the coarse part ends bit for bit as the uninterrupted one."""
+    sizes = []
+    pixel_rays = train_module.pixel_rays
+
+    def spy(poses, pix, h, w, camera):
+        sizes.append((h, w, int(pix.max())))
+        return pixel_rays(poses, pix, h, w, camera)
+
+    monkeypatch.setattr(train_module, "pixel_rays", spy)
+    a, b = tmp_path / "a", tmp_path / "b"
+    cfg = _cfg(dataset, iters=60, coarse_to_fine=0.5, grid_final=48)
+    train(cfg, a, progress=False, log=lambda m: None)
+    assert [s[:2] for s in sizes] == [(8, 8)] * 30 + [(32, 32)] * 30
+    assert max(s[2] for s in sizes[:30]) < 64 and max(s[2] for s in sizes[30:]) >= 64  # pixels of 8 x 8, then 32 x 32
+    schedule = json.loads((a / "config.json").read_text())["grid_schedule"]
+    assert schedule[-1] == [30, 48] and [s for _, s in schedule[:-1]] == [20, 25, 32]  # 16 -> 32 (an 8 x 8 run's)
+    assert [i for i, _ in schedule[:-1]] == [3, 6, 9]  # at 0.1, 0.2, 0.3 of the coarse 30 iterations
+    train(cfg, b, progress=False, log=lambda m: None, stop_at=20)
+    train(cfg, b, progress=False, log=lambda m: None)
+    ca, cb = (torch.load(r / "checkpoint.pt", weights_only=False) for r in (a, b))
+    assert torch.equal(ca["state"]["grid"], cb["state"]["grid"]) and torch.equal(ca["state"]["sh"], cb["state"]["sh"])
+    # the images must shrink to at least 8 pixels across: one line, nothing written
+    res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), "--resolution", "16",
+                                    "--coarse-to-fine", "0.5", "--device", "cpu", "--quiet"])
+    assert res.exit_code == 2 and "--coarse-to-fine" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "bad").exists()
+
+
 def test_not_a_dataset_is_one_clear_line(tmp_path):
     res = CliRunner().invoke(main, ["train", str(tmp_path), "--out", str(tmp_path / "r")])
     assert res.exit_code == 2
@@ -247,7 +286,8 @@ def test_learning_rate_factor_decays_to_the_fraction_asked():
                                                      ("--stop-transmittance", "0", "stop_transmittance", ("-1", "1.5")),
                                                      ("--step-ratio", "1", "step_ratio", ("0", "3")),
                                                      ("--adam-eps", "1e-12", "adam_eps", ("0", "-1")),
-                                                     ("--error-rays", "0.5", "error_rays", ("-0.1", "1"))])
+                                                     ("--error-rays", "0.5", "error_rays", ("-0.1", "1")),
+                                                     ("--coarse-to-fine", "0.5", "coarse_to_fine", ("-0.1", "1"))])
 def test_run_options_from_the_command_line_and_resume_guard(dataset, tmp_path, option, value, key, bad):
     run = tmp_path / "lr"
     args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
@@ -261,6 +301,20 @@ def test_run_options_from_the_command_line_and_resume_guard(dataset, tmp_path, o
     for v in bad:
         res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), option, v])
         assert res.exit_code == 2 and option in res.output and not (tmp_path / "bad").exists()
+
+
+def test_tv_luminance_from_the_command_line_and_resume_guard(dataset, tmp_path):
+    run = tmp_path / "tv"
+    args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
+    res = CliRunner().invoke(main, args + ["--iters", "3", "--tv-luminance", "linear"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "config.json").read_text())["tv_luminance"] == "linear"
+    res = CliRunner().invoke(main, args + ["--iters", "6"])
+    assert res.exit_code == 2 and "tv_luminance='linear'" in res.output and "Traceback" not in res.output
+    for bad in (["--tv-luminance", "gamma"], ["--tv-luminance", "srgb", "--tv-points", "64"]):
+        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), *bad])
+        assert res.exit_code == 2 and "--tv-luminance" in res.output and "Traceback" not in res.output
+        assert not (tmp_path / "bad").exists()
 
 
 def test_upsample_at_sets_the_grid_schedule_and_guards_resume(dataset, tmp_path):

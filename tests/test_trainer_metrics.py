@@ -8,7 +8,7 @@ import pytest
 pytest.importorskip("torch")
 pytestmark = pytest.mark.torch
 
-from spikenerf.metrics import Lpips, psnr, ssim, ssim_map  # noqa: E402
+from spikenerf.metrics import TONE_EDGES, Lpips, Tone, psnr, ssim, ssim_map  # noqa: E402
 
 
 def test_psnr_known_value_and_mask():
@@ -83,3 +83,50 @@ def test_lpips_feeds_the_network_three_channels_in_minus_one_to_one(monkeypatch)
     mask = np.zeros((6, 8), bool)
     mask[:3] = True  # outside the mask both images become 0 -> -1
     assert lp(pred, gt, mask) == pytest.approx(0.75)
+
+
+def _dark_square(size=100):
+    """Linear luminance: 0.5 with a 40 x 40 square of 0.005 in it; alpha 1 but for a 10-pixel frame of 0."""
+    truth = np.full((size, size), 0.5)
+    truth[30:70, 30:70] = 0.005
+    alpha = np.zeros((size, size))
+    alpha[10:-10, 10:-10] = 1.0
+    return truth, alpha
+
+
+def _bin(rows, value):
+    return next(r for r in rows if r["truth_from"] <= value < r["truth_to"])
+
+
+def test_tone_tells_a_blur_from_a_lifted_level():
+    """Two effects hidden in a rendered image of a dark square on grey: a blur (5 x 5 box) lifts the dark
+    bin only at the square's edge, so its flat pixels keep their level exactly; a level bias (+0.01 on every
+    pixel darker than 0.01) shows in the flat pixels as itself. Neither touches the grey bin's flat pixels."""
+    truth, alpha = _dark_square()
+    padded = np.pad(truth, 2, mode="edge")
+    blurred = np.lib.stride_tricks.sliding_window_view(padded, (5, 5)).mean(axis=(2, 3))
+    lifted = truth + np.where(truth < 0.01, 0.01, 0.0)
+    blur, lift = Tone(), Tone()
+    blur.add(blurred, truth, alpha)
+    lift.add(lifted, truth, alpha)
+    b, l = _bin(blur.summary(), 0.005), _bin(lift.summary(), 0.005)
+    assert b["pixels"] == l["pixels"] == 40 * 40 and b["truth"] == pytest.approx(0.005)
+    assert b["bias"] > 0.005  # the edge's light, averaged over the square
+    assert b["flat_pixels"] == 36 * 36 and b["flat_bias"] == pytest.approx(0.0, abs=1e-12)  # FLAT_RADIUS = 2
+    assert l["bias"] == pytest.approx(0.01) and l["flat_bias"] == pytest.approx(0.01)
+    for t in (blur, lift):
+        grey = _bin(t.summary(), 0.5)
+        assert grey["pixels"] == 80 * 80 - 40 * 40 and grey["flat_bias"] == pytest.approx(0.0, abs=1e-12)
+    assert sum(r["pixels"] for r in blur.summary()) == 80 * 80  # alpha <= 0.5 is not the object
+    empty = _bin(blur.summary(), 0.15)
+    assert empty["pixels"] == 0 and empty["bias"] is None and empty["flat_bias"] is None
+
+
+def test_tone_clamps_the_prediction_as_displayed_and_sums_over_views():
+    truth, alpha = _dark_square()
+    t = Tone()
+    t.add(np.full_like(truth, 2.0), truth, alpha)  # displayed as 1
+    t.add(truth, truth, alpha)
+    grey = _bin(t.summary(), 0.5)
+    assert grey["pixels"] == 2 * (80 * 80 - 40 * 40) and grey["pred"] == pytest.approx(0.75)
+    assert grey["bias"] == pytest.approx(0.25) and len(t.summary()) == len(TONE_EDGES) - 1

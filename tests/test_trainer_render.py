@@ -389,6 +389,40 @@ def test_the_block_prior_keeps_its_strength_per_voxel_on_a_cropped_grid():
     assert float(crop.detach()) == pytest.approx(share * float(full.detach()), rel=0.15)
 
 
+def test_the_prior_on_the_luminance_in_its_logit_in_itself_or_not_at_all():
+    """``tv_loss(luminance=...)``: a dark surface (logit -6.5, luminance 0.0015) beside voxels never seen
+    (logit 0, luminance 0.5). On the logit the prior pulls the dark voxels up as hard as any; on the luminance
+    (times 4, the logit's slope at grey) its pull there is about 0.004 times that, on its sRGB encoding (scaled
+    likewise) about 0.08 times; off, none. The density's part is the same in every mode, and the default is the
+    logit."""
+    f = GridField(grid_size=8, final_size=8, sh_degree=1)
+    with torch.no_grad():
+        f.grid[0, 0].normal_(generator=torch.Generator().manual_seed(0))
+        f.grid[0, 1, :4] = -6.5
+    grads = {}
+    for mode in ("logit", "linear", "srgb", "off"):
+        f.grid.grad = None
+        f.tv_loss(torch.Generator().manual_seed(1), block=8, luminance=mode).backward()
+        grads[mode] = f.grid.grad[0].clone()
+    assert torch.equal(grads["logit"][0], grads["off"][0])
+    assert torch.allclose(grads["logit"][0], grads["linear"][0]) and torch.allclose(grads["logit"][0], grads["srgb"][0])
+    edge = grads["logit"][1, 3]  # the dark voxels next to the grey ones: pulled up (a negative gradient)
+    assert (edge < 0).all() and torch.count_nonzero(grads["off"][1]) == 0
+    s = torch.sigmoid(torch.tensor(-6.5))
+    # d/dz (4 s(z) - 4 s(0))^2 = 32 (s(z) - 0.5) s'(z) against d/dz (z - 0)^2 = 2 z
+    assert torch.allclose(grads["linear"][1, 3] / edge, 16 * (s - 0.5) * s * (1 - s) / -6.5, rtol=1e-4)
+    # the sRGB encoding's slope at 0.0015 is 12.92 (its linear part); k = 6.07 puts its slope in z at grey to 1
+    k = 1.0 / (0.25 * 1.055 / 2.4 * 0.5 ** (1 / 2.4 - 1))
+    srgb = lambda v: 1.055 * v ** (1 / 2.4) - 0.055  # noqa: E731 (above 0.0031308)
+    want = k * k * (12.92 * s - srgb(torch.tensor(0.5))) * 12.92 * s * (1 - s) / -6.5
+    assert torch.allclose(grads["srgb"][1, 3] / edge, want, rtol=1e-4) and 0.05 < float(want) < 0.1
+    g = torch.Generator().manual_seed(1)
+    default = f.tv_loss(g, block=8).detach()
+    assert torch.equal(default, f.tv_loss(torch.Generator().manual_seed(1), block=8, luminance="logit").detach())
+    with pytest.raises(ValueError, match="luminance"):
+        f.tv_loss(luminance="gamma")
+
+
 def test_early_termination_drops_only_what_the_ray_no_longer_sees():
     """Samples behind transmittance ``stop`` are dropped (early ray termination): on a cloud whose
     density rises inward, many are; the dropped ones are exactly those their ray reaches with

@@ -9,7 +9,7 @@ import click
 
 from spikegen.errors import SpikegenError
 
-from .config import COMPARE_WITH, ITERS_AT, SPACES, TrainConfig
+from .config import COARSE_FACTOR, COMPARE_WITH, ITERS_AT, SPACES, TV_LUMINANCE, TrainConfig
 from .methods import DEFAULT_METHOD, METHODS
 
 
@@ -80,6 +80,11 @@ def _fractions(ctx, param, value: str) -> tuple:
               type=click.FloatRange(min=0, max=1, max_open=True),
               help="The fraction of each step's rays drawn where the field's error has been high (tiles of an error "
                    "map); the rest are drawn uniformly. 0 = all uniform.")
+@click.option("--coarse-to-fine", "coarse_to_fine", default=TrainConfig.coarse_to_fine, show_default=True,
+              type=click.FloatRange(min=0, max=1, max_open=True),
+              help=f"Train the first fraction F of the iterations on the images box-downsampled {COARSE_FACTOR} "
+                   "times a side (growing the grid as a run at that size does), then the rest at full size. 0 = full "
+                   "size throughout.")
 @click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
               help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
 @click.option("--grid-final", default=TrainConfig.grid_final, show_default=True, type=click.IntRange(min=0),
@@ -104,6 +109,11 @@ def _fractions(ctx, param, value: str) -> tuple:
                    "growths, each by the same factor, from the start size to the final size.")
 @click.option("--tv-weight", default=TrainConfig.tv_weight, show_default=True, type=click.FloatRange(min=0),
               help="Weight of the total-variation (smoothness) prior on the grids.")
+@click.option("--tv-luminance", "tv_luminance", type=click.Choice(TV_LUMINANCE), default=TrainConfig.tv_luminance,
+              show_default=True,
+              help="What the prior compares of the luminance: its logit (as stored); the logit clamped from below at "
+                   "luminance 0.02 (floored); the luminance itself (linear) or its sRGB encoding (srgb), each scaled "
+                   "to the logit's slope at grey; or nothing (off: the density alone).")
 @click.option("--tv-points", default=TrainConfig.tv_points, show_default=True, type=click.IntRange(min=0),
               help="Put the prior at the voxels of this many of each step's sample points (0 = a random block).")
 @click.option("--lazy-above", default=TrainConfig.lazy_above, show_default=True, type=click.IntRange(min=0),
@@ -115,8 +125,9 @@ def _fractions(ctx, param, value: str) -> tuple:
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, windows, sensor_maps, out, seed, batch_rays, lr_grid,
-          lr_decay, adam_eps, error_rays, sh_degree,
-          grid_final, fit_box, space, stop_transmittance, step_ratio, upsample_at, tv_weight, tv_points, lazy_above,
+          lr_decay, adam_eps, error_rays, coarse_to_fine, sh_degree,
+          grid_final, fit_box, space, stop_transmittance, step_ratio, upsample_at, tv_weight, tv_luminance, tv_points,
+          lazy_above,
           checkpoint_every, do_eval, quiet):
     """Train a radiance field on a spike dataset folder (dataset.md)."""
     from .train import train as run_train
@@ -125,9 +136,11 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
                       frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
-                      adam_eps=adam_eps, error_rays=error_rays, sh_degree=sh_degree,
+                      adam_eps=adam_eps, error_rays=error_rays, coarse_to_fine=coarse_to_fine,
+                      sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, stop_transmittance=stop_transmittance,
-                      step_ratio=step_ratio, upsample_at=upsample_at, tv_weight=tv_weight, tv_points=tv_points,
+                      step_ratio=step_ratio, upsample_at=upsample_at, tv_weight=tv_weight,
+                      tv_luminance=tv_luminance, tv_points=tv_points,
                       space=space, lazy_above=lazy_above,
                       checkpoint_every=checkpoint_every,
                       sensor_maps=str(Path(sensor_maps).resolve()) if sensor_maps

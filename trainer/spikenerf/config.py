@@ -10,6 +10,7 @@ from .methods import DEFAULT_METHOD
 
 SPACES = ("cube", "auto", "ndc")  # TrainConfig.space
 COMPARE_WITH = ("auto", "truth", "reconstruction")  # spikenerf eval --compare-with (eval.reference)
+TV_LUMINANCE = ("logit", "floored", "linear", "srgb", "off")  # TrainConfig.tv_luminance (model.GridField.tv_loss)
 
 # The default iteration count at two image sizes, chosen on the project's procedural lego (spikelik,
 # i64, 48 train views, scored on its 8 val views; docs/trainer.md "Iterations"), never on the real
@@ -22,6 +23,9 @@ ITERS_AT = ((100 * 100, 3000), (400 * 400, 9000))
 # third to two fifths of the occupied samples (docs/trainer.md, "Early ray termination"). 0 renders
 # every occupied sample; checkpoints from before the option count as 0.
 STOP_TRANSMITTANCE = 1e-4
+
+
+COARSE_FACTOR = 4  # --coarse-to-fine: the first part of the run sees the images this many times smaller a side
 
 
 def default_iters(height: int, width: int) -> int:
@@ -52,6 +56,9 @@ class TrainConfig:
     lr_decay: float = 0.1  # the learning rates decay exponentially to this fraction of their start over the run
     adam_eps: float = 1e-8  # Adam's eps for the voxel grids (the MLP keeps 1e-8)
     error_rays: float = 0.0  # the fraction of each step's rays drawn where the error is high (errorrays.py)
+    # the fraction of the iterations trained on the images box-downsampled by COARSE_FACTOR (at that size's grid
+    # schedule) before the rest at full size (train.grid_schedule); 0 = full size throughout
+    coarse_to_fine: float = 0.0
     grid_start: int = 32
     grid_final: int = 0  # 0 = chosen from the image size
     # the sample step along a ray in voxels of the current grid (model.GridField.step_ratio)
@@ -62,6 +69,7 @@ class TrainConfig:
     occupancy_after: int = 100  # no pruning before this iteration (empty space must first be learned)
     occupancy_threshold: float = 2e-2
     tv_weight: float = 1e-4
+    tv_luminance: str = "logit"  # what the prior compares of the luminance (TV_LUMINANCE; model.GridField.tv_loss)
     stop_transmittance: float = STOP_TRANSMITTANCE  # early ray termination in training; 0 = none
     lazy_above: int = 0  # grids with more voxels than this train with the lazy Adam (optim.py); 0 = never
     # the field's space for a scene that fills the frame: "cube" (world [-1.5, 1.5]^3), "ndc" (LLFF's

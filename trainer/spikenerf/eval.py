@@ -36,7 +36,7 @@ from spikegen.formats import IMAGE_KIND_RECONSTRUCTION
 
 from .config import COMPARE_WITH
 from .data import area_resize, ground_truth, has_ground_truth, load_dataset, load_sensor_maps, read_view_spikes
-from .metrics import Lpips, psnr, ssim
+from .metrics import Lpips, Tone, psnr, ssim
 from .render import render_image
 from .train import (CHECKPOINT, checkpoint_camera, checkpoint_space, field_from_checkpoint, load_checkpoint,
                     resolve_device)
@@ -75,7 +75,7 @@ def evaluate(run: Path, split: str = "test", device: str = "auto", progress: boo
     space = checkpoint_space(ck)  # NDC for a forward-facing capture (its rays are mapped as in training)
     lp = Lpips()
     out_dir = run / f"eval_{split}"
-    rows, kinds = [], set()
+    rows, kinds, tone = [], set(), Tone()
     gain = (truth_gain(ds, H, W) if compare_with != "reconstruction" and any(map(_imported_truth, views))
             else None)
     for i, view in enumerate(tqdm(views, desc=f"eval {split}", disable=not progress, unit="view")):
@@ -84,7 +84,10 @@ def evaluate(run: Path, split: str = "test", device: str = "auto", progress: boo
         kind, gt_x, alpha = reference(ds, view, H, W, compare_with)
         if gain is not None and kind == GROUND_TRUTH and _imported_truth(view):
             x = x * gain
-        pred = spikeio.linear_to_srgb(x.clamp(0, 1).cpu().numpy())
+        linear = x.clamp(0, 1).cpu().numpy()
+        if kind == GROUND_TRUTH:
+            tone.add(linear, gt_x, alpha)
+        pred = spikeio.linear_to_srgb(linear)
         kinds.add(kind)
         gt = spikeio.linear_to_srgb(gt_x)
         rows.append({"view": view.name, **_view_metrics(pred, gt, alpha, lp)})
@@ -92,6 +95,12 @@ def evaluate(run: Path, split: str = "test", device: str = "auto", progress: boo
     metrics = _summary(split, rows, lp, ck)
     metrics["views_from"] = ds.heldout if split == "test" else split  # "val" when the folder has no test split
     metrics["compared_with"] = " and ".join(sorted(kinds))  # one of the two unless a folder mixes them
+    if GROUND_TRUTH in kinds:
+        metrics["tone"] = tone.summary()
+        metrics["tone_from"] = ("per bin of the ground truth's linear luminance, over the object (alpha > 0.5) of the "
+                                "views compared with their ground truth: pixels, mean truth and prediction, bias = "
+                                "prediction - truth (linear); flat_*: the pixels whose neighbourhood lies in the same "
+                                "bin and in the object (metrics.Tone)")
     if gain is not None:
         metrics["truth_gain"] = gain
         metrics["truth_gain_from"] = ("an imported capture's units to its ground truth's: least squares in linear "

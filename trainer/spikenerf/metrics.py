@@ -88,3 +88,66 @@ class Lpips:
 
         with torch.no_grad():
             return float(self.net(t(pred), t(gt)).mean())
+
+
+# ---------------------------------------------------------------------- tone: bias per luminance level
+# Bins of the ground truth's linear luminance (on white) in which Tone compares the prediction's mean with the
+# truth's: is a level rendered too bright or too dark? The low bins are narrow because the dark end is where
+# a display (sRGB) shows a bias most: 0.004 linear is 14 of 255 in sRGB, 0.012 is 29.
+TONE_EDGES = (0.0, 0.01, 0.02, 0.05, 0.1, 0.2, 0.4, 0.7, 1.0)
+FLAT_RADIUS = 2  # Tone's flat pixels: no other bin within this many pixels
+
+
+def _window_extremes(img: np.ndarray, r: int) -> tuple[np.ndarray, np.ndarray]:
+    """The min and the max of ``img`` over each pixel's ``(2r+1) x (2r+1)`` window (the image's edge pixels
+    repeated outside it)."""
+    padded = np.pad(img, r, mode="edge")
+    win = np.lib.stride_tricks.sliding_window_view(padded, (2 * r + 1, 2 * r + 1))
+    return win.min(axis=(2, 3)), win.max(axis=(2, 3))
+
+
+class Tone:
+    """The rendered luminance's bias per level of the ground truth's, over the object (alpha > 0.5).
+
+    Each pixel falls in a bin of :data:`TONE_EDGES` by its ground truth's linear luminance; per bin the means of
+    the truth and of the prediction (both linear, the prediction clamped to [0, 1] as displayed) and their
+    difference, the bias. A blurred image moves light from bright pixels to their dark neighbours, so it
+    lifts the dark bins near edges; the bin's *flat* pixels (their whole ``(2r+1) x (2r+1)`` neighbourhood,
+    ``r`` = :data:`FLAT_RADIUS`, in the same bin and in the object) see no edge within that reach, so a bias
+    there is the level's own (the sensor model, the loss, the field's parameterisation), not that of a blur
+    of up to ``r`` pixels.
+    """
+
+    def __init__(self, edges=TONE_EDGES):
+        self.edges = np.asarray(edges, np.float64)
+        n = len(self.edges) - 1
+        self.sums = {k: np.zeros(n) for k in ("pixels", "truth", "pred", "flat_pixels", "flat_truth", "flat_pred")}
+
+    def add(self, pred: np.ndarray, truth: np.ndarray, alpha: np.ndarray) -> None:
+        """One view: linear luminance ``[H, W]`` rendered and true, and the truth's alpha."""
+        pred = np.clip(np.asarray(pred, np.float64), 0.0, 1.0)
+        truth = np.asarray(truth, np.float64)
+        n = len(self.edges) - 1
+        level = np.clip(np.searchsorted(self.edges, truth, side="right") - 1, 0, n - 1)
+        obj = np.asarray(alpha) > 0.5
+        lo, hi = _window_extremes(level, FLAT_RADIUS)
+        flat = obj & (lo == hi) & (_window_extremes(obj.astype(np.int8), FLAT_RADIUS)[0] == 1)
+        for key, mask in (("", obj), ("flat_", flat)):
+            self.sums[key + "pixels"] += np.bincount(level[mask], minlength=n)
+            self.sums[key + "truth"] += np.bincount(level[mask], truth[mask], minlength=n)
+            self.sums[key + "pred"] += np.bincount(level[mask], pred[mask], minlength=n)
+
+    def summary(self) -> list[dict]:
+        """Per bin: its edges, the pixels, the truth's and the prediction's mean and the bias (linear), and the
+        same over its flat pixels (None where a bin has none)."""
+        rows = []
+        for i, (lo, hi) in enumerate(zip(self.edges[:-1], self.edges[1:])):
+            row = {"truth_from": float(lo), "truth_to": float(hi)}
+            for key in ("", "flat_"):
+                n = int(self.sums[key + "pixels"][i])
+                t = self.sums[key + "truth"][i] / n if n else None
+                p = self.sums[key + "pred"][i] / n if n else None
+                row.update({key + "pixels": n, key + "truth": t, key + "pred": p,
+                            key + "bias": None if n == 0 else p - t})
+            rows.append(row)
+        return rows

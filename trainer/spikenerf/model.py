@@ -32,6 +32,8 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
+from .config import TV_LUMINANCE
+
 
 def _shift_for(alpha_init: float, step_ratio: float) -> float:
     """Density bias so that an untrained sample of ``step_ratio`` reference voxels has ``alpha_init``."""
@@ -331,16 +333,28 @@ class GridField(nn.Module):
         hi = self.aabb[0] + (ends[1].ceil() + pad) * self.voxel
         return lo, hi
 
-    def tv_loss(self, generator: torch.Generator | None = None, block: int = 24) -> torch.Tensor:
+    def tv_loss(self, generator: torch.Generator | None = None, block: int = 24,
+                luminance: str = "logit") -> torch.Tensor:
         """Total variation (squared differences) on a random ``block^3`` sub-grid: a smoothness prior.
+
+        ``luminance`` (the main grid's luminance channel; with ``features`` every feature channel): its differences
+        as stored, the logit (``"logit"``), or clamped from below at the logit of :data:`TV_FLOOR` (``"floored"``:
+        a darker voxel feels no pull); of the luminance itself (``"linear"``: the logit's sigmoid) or of its sRGB
+        encoding (``"srgb"``), each scaled to the logit's slope at mid-grey; or none (``"off"``).
 
         The SH grid (if any) gets the same prior on its own random block. In sparse mode the block
         is read as a leaf and recorded on the tape (its gradient stays the size of the block).
         Scaled by the grid's share of the cube's points at its resolution (1 for the cube): a block
         covers a larger share of a cropped grid, so unscaled the prior on each voxel would grow as
         the box shrinks; scaled, each voxel gets the prior it gets in the cube, in expectation."""
+        if luminance not in TV_LUMINANCE:
+            raise ValueError(f"luminance must be one of {', '.join(TV_LUMINANCE)}, got {luminance!r}")
         share = self.grid[0, 0].numel() / self.grid_size ** 3
-        return share * sum(_tv(g, block, generator, self.tape if self.sparse else None) for g in self.grids())
+        tape = self.tape if self.sparse else None
+        total = _tv(self.grid, block, generator, tape, luminance)
+        if self.sh is not None:
+            total = total + _tv(self.sh, block, generator, tape)
+        return share * total
 
     def tv_at_points(self, generator: torch.Generator | None = None, n: int = 8192) -> torch.Tensor:
         """Total variation where the last training query read: for ``n`` of its points drawn at
@@ -394,7 +408,18 @@ def split_count(grid: torch.Tensor, points: int) -> int:
     return CPU_SPLIT if grid.device.type == "cpu" and points * 64 >= grid.numel() else 1
 
 
-def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None) -> torch.Tensor:
+def _srgb(v: torch.Tensor) -> torch.Tensor:
+    """The sRGB encoding of linear values in [0, 1] (its power's slope bounded as in train.linear_to_srgb)."""
+    return torch.where(v <= 0.0031308, v * 12.92, 1.055 * v.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
+TV_FLOOR = 0.02  # tv_loss(luminance="floored"): luminance below which a voxel's logit feels no prior
+_TV_FLOOR_LOGIT = math.log(TV_FLOOR / (1 - TV_FLOOR))
+# 1 / (d sRGB(sigmoid(z)) / dz at z = 0): the sRGB encoding of the luminance, scaled to the logit's slope at grey
+_SRGB_AT_GREY = 1.0 / (0.25 * 1.055 / 2.4 * 0.5 ** (1 / 2.4 - 1))
+
+
+def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None, luminance: str = "logit") -> torch.Tensor:
     dims = grid.shape[2:]
     b = [min(block, n) for n in dims]
     starts = [int(torch.randint(0, n - c + 1, (1,), generator=generator)) for n, c in zip(dims, b)]
@@ -409,7 +434,16 @@ def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None) -> 
         leaf = sub.detach().reshape(grid.shape[1], -1).clone().requires_grad_(True)  # [C, block voxels]
         tape.append((grid, idx.view(-1), leaf))
         sub = leaf.view(sub.shape)
-    return sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean()
+    scale = 1.0
+    if luminance == "off":  # the density's differences alone, weighted as among all the channels
+        sub, scale = sub[:, :1], 1.0 / grid.shape[1]
+    elif luminance == "floored":  # the logit clamped from below at TV_FLOOR's: no pull on a darker voxel
+        sub = torch.cat([sub[:, :1], sub[:, 1:].clamp(min=_TV_FLOOR_LOGIT)], dim=1)
+    elif luminance in ("linear", "srgb"):  # scaled to the logit's slope at mid-grey (logit 0): the same prior there
+        lum = torch.sigmoid(sub[:, 1:])
+        lum = 4.0 * lum if luminance == "linear" else _SRGB_AT_GREY * _srgb(lum)
+        sub = torch.cat([sub[:, :1], lum], dim=1)
+    return scale * (sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean())
 
 
 def _grad_buffer(grid: torch.Tensor) -> torch.Tensor:

@@ -18,7 +18,7 @@ from spikegen.errors import InputError, SpikegenError
 from spikegen.spikeio import atomic_path, remove_stale_parts, write_json_atomic
 
 from . import ndc, neuron
-from .config import SPACES, TrainConfig, default_iters
+from .config import COARSE_FACTOR, SPACES, TrainConfig, default_iters
 from .data import load_dataset
 from .errorrays import ErrorRays
 from .methods import METHODS
@@ -50,8 +50,20 @@ def final_grid(cfg: TrainConfig, width: int) -> int:
     return cfg.grid_final or int(min(256, max(32, round(1.28 * width / 8) * 8)))
 
 
+def coarse_until(cfg: TrainConfig) -> int:
+    """The first iteration at full size (``--coarse-to-fine``; 0 when the whole run is at full size)."""
+    return int(cfg.coarse_to_fine * cfg.iters)
+
+
 def grid_schedule(cfg: TrainConfig, width: int) -> list[tuple[int, int]]:
-    """[(iteration, grid size)]: sizes growing geometrically from grid_start to the final size."""
+    """[(iteration, grid size)]: sizes growing geometrically from grid_start to the final size. With
+    ``--coarse-to-fine``: over its coarse iterations the schedule of a run of that many iterations on images
+    ``COARSE_FACTOR`` times smaller (its own final size), then one growth to the final size where the full-size
+    images start."""
+    until = coarse_until(cfg)
+    if until > 0:
+        coarse = dataclasses.replace(cfg, iters=until, coarse_to_fine=0.0, grid_final=0)
+        return grid_schedule(coarse, width // COARSE_FACTOR) + [(until, final_grid(cfg, width))]
     G = final_grid(cfg, width)
     n = len(cfg.upsample_at)
     sizes = [int(round(cfg.grid_start * (G / cfg.grid_start) ** ((i + 1) / n))) for i in range(n)]
@@ -224,10 +236,12 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
-           "adam_eps": 1e-8, "error_rays": 0.0, "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
+           "adam_eps": 1e-8, "error_rays": 0.0, "coarse_to_fine": 0.0, "tv_luminance": "logit",
+           "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "adam_eps",
-                "error_rays", "stop_transmittance", "grid_start", "grid_final", "step_ratio", "upsample_at",
+                "error_rays", "coarse_to_fine", "tv_luminance", "stop_transmittance", "grid_start", "grid_final",
+                "step_ratio", "upsample_at",
                 "sh_degree", "sh_scale", "frames", "windows", "statistic", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
@@ -256,6 +270,14 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     # the fitted box is for an object on white; a scene that fills the frame (an imported capture) keeps its box
     if cfg.windows < 0:
         raise InputError(f"--windows must be >= 0 (0 = chosen from the camera's motion), got {cfg.windows}")
+    if not 0 <= cfg.coarse_to_fine < 1:
+        raise InputError(f"--coarse-to-fine must be in [0, 1), got {cfg.coarse_to_fine}")
+    if cfg.coarse_to_fine > 0 and (H % COARSE_FACTOR or W % COARSE_FACTOR or W // COARSE_FACTOR < 8):
+        raise InputError(f"--coarse-to-fine: the training images' {W} x {H} must shrink {COARSE_FACTOR} times a side "
+                         f"to at least 8 pixels across")
+    if cfg.tv_points and cfg.tv_luminance != "logit":
+        raise InputError("--tv-luminance is for the block prior; --tv-points compares the stored values")
+    asked_windows = cfg.windows
     cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame,
                               iters=cfg.iters or default_iters(H, W))
     cfg = dataclasses.replace(cfg, windows=count_windows(ds, method, H, W, cfg.frames, cfg.windows))
@@ -276,6 +298,12 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
         log(f"{ds.root}: {why}" + ("" if space else "; the field stays in the world cube [-1.5, 1.5]^3"))
     tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None,
                        windows=cfg.windows)
+    coarse = None  # --coarse-to-fine: (its targets, their height, width and camera), each window count its own
+    if coarse_until(cfg) > 0:
+        h, w = H // COARSE_FACTOR, W // COARSE_FACTOR
+        tc = build_targets(ds, method, h, w, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None,
+                           windows=count_windows(ds, method, h, w, cfg.frames, asked_windows))
+        coarse = (tc, h, w, ds.camera(h, w))
     cfg = dataclasses.replace(cfg, statistic=tg.statistic)
     if cfg.windows > 1:
         log(f"{ds.root}: the counts of each moving view in {cfg.windows} windows of about {cfg.frames / cfg.windows:.0f} "
@@ -284,6 +312,8 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     remove_stale_parts(out)  # a run killed while writing a checkpoint leaves its temporary behind
     ck_path = out / CHECKPOINT
     batch = Batch(tg, device)
+    if coarse is not None:
+        coarse = (Batch(coarse[0], device), *coarse[1:], coarse_until(cfg))
     focal = ds.camera(H, W)  # a float (square pixels, centred) or (fl_x, fl_y, cx, cy)
     field = make_field(cfg, W, space).to(device)
     opt = make_optimizer(field, cfg)
@@ -299,7 +329,7 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
         log(f"{out}: already trained ({start} iterations)")
         return ck_path
     _loop(cfg, method, field, opt, batch, ds.intensity, (H, W, focal, ds.background, space), schedule, start,
-          train_s, out, progress, stop_at or cfg.iters, mined)
+          train_s, out, progress, stop_at or cfg.iters, mined, coarse)
     return ck_path
 
 
@@ -340,8 +370,11 @@ def _frames(ds, frames: int | None) -> int:
 
 
 def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress, stop_at,
-          mined=None):
+          mined=None, coarse=None):
+    """``coarse`` (``--coarse-to-fine``): (Batch, height, width, camera, first full-size iteration) of the
+    downsampled images the iterations before it draw their rays from; error rays start with the full size."""
     H, W, focal, background, space = cam
+    fine = (batch, H, W, focal)
     ck_path = out / CHECKPOINT
     extra = {"height": H, "width": W, "focal_px": focal, "intensity": intensity, "background": background}
     if space is not None:  # no key: world coordinates (as every checkpoint from before NDC)
@@ -358,8 +391,11 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         if it >= cfg.occupancy_after and it % cfg.occupancy_every == 0:
             field.update_occupancy(cfg.occupancy_threshold)
         gen = iteration_generator(cfg.seed, it)
-        img, pix, jitter, weights = batch.draw(cfg.batch_rays, gen, mined)
-        o, d = pixel_rays(batch.poses[img], pix, H, W, focal)
+        at_coarse = coarse is not None and it < coarse[4]
+        batch, h, w, camera = coarse[:4] if at_coarse else fine
+        mining = None if at_coarse else mined
+        img, pix, jitter, weights = batch.draw(cfg.batch_rays, gen, mining)
+        o, d = pixel_rays(batch.poses[img], pix, h, w, camera)
         if space is None:
             # the composite the sensor model sees
             x, _ = render_rays(field, o, d, jitter, background, stop=cfg.stop_transmittance)
@@ -367,12 +403,13 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
             (x, _), _ = render_ndc_rays(field, space, o, d, jitter, background, stop=cfg.stop_transmittance)
         loss, pred, obs = method_loss(method, x, img, pix, batch, intensity, weights)
         if cfg.tv_weight > 0:
-            tv = field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse else field.tv_loss(gen)
+            tv = (field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse
+                  else field.tv_loss(gen, luminance=cfg.tv_luminance))
             loss = loss + cfg.tv_weight * tv
         guard.note(loss, it, bar)
-        if mined is not None:
-            mined.note(img, pix, pred, obs)
-            mined.step_done(it)
+        if mining is not None:
+            mining.note(img, pix, pred, obs)
+            mining.step_done(it)
         for g, base in zip(opt.param_groups, (cfg.lr_grid, cfg.lr_mlp)):
             g["lr"] = base * learning_rate_factor(it, cfg.iters, cfg.lr_decay)
         opt.zero_grad(set_to_none=False)  # the grids' gradients stay allocated: model._CornerRead adds into them
