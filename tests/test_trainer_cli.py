@@ -287,7 +287,8 @@ def test_learning_rate_factor_decays_to_the_fraction_asked():
                                                      ("--step-ratio", "1", "step_ratio", ("0", "3")),
                                                      ("--adam-eps", "1e-12", "adam_eps", ("0", "-1")),
                                                      ("--error-rays", "0.5", "error_rays", ("-0.1", "1")),
-                                                     ("--coarse-to-fine", "0.5", "coarse_to_fine", ("-0.1", "1"))])
+                                                     ("--coarse-to-fine", "0.5", "coarse_to_fine", ("-0.1", "1")),
+                                                     ("--srgb-weight", "400", "srgb_weight", ("-1",))])
 def test_run_options_from_the_command_line_and_resume_guard(dataset, tmp_path, option, value, key, bad):
     run = tmp_path / "lr"
     args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
@@ -315,6 +316,13 @@ def test_tv_luminance_from_the_command_line_and_resume_guard(dataset, tmp_path):
         res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), *bad])
         assert res.exit_code == 2 and "--tv-luminance" in res.output and "Traceback" not in res.output
         assert not (tmp_path / "bad").exists()
+
+
+def test_srgb_weight_is_for_the_likelihood_methods(dataset, tmp_path):
+    res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), "--method", "tfp32",
+                                    "--srgb-weight", "10"])
+    assert res.exit_code == 2 and "--srgb-weight" in res.output and "Traceback" not in res.output
+    assert not (tmp_path / "bad").exists()
 
 
 def test_upsample_at_sets_the_grid_schedule_and_guards_resume(dataset, tmp_path):

@@ -79,3 +79,34 @@ def test_oracle_fits_the_srgb_encoding_of_the_ground_truth():
     assert float(loss.detach()) == pytest.approx(want, rel=1e-5)
     loss.backward()
     assert torch.isfinite(x.grad).all() and x.grad[2] == 0 and x.grad[0] < 0 and x.grad[1] > 0
+
+
+def test_srgb_weight_weighs_each_ray_by_the_displays_slope():
+    """``--srgb-weight``: each likelihood term times (sRGB slope at its luminance / slope at grey)^2, capped. A
+    dark ray (X = 0.001, on the encoding's linear part: slope 12.92) then weighs 385 times a grey one (X = 0.5),
+    a white one 0.45 times; the cap bounds it; the terms themselves are the likelihood's."""
+    from spikenerf.train import SRGB_SLOPE_AT_GREY, display_weight
+
+    x = torch.tensor([0.001, 0.5, 1.0, 0.0])
+    w = display_weight(x, 1000.0)
+    assert float(w[1]) == pytest.approx(1.0) and float(w[0]) == pytest.approx((12.92 / SRGB_SLOPE_AT_GREY) ** 2)
+    assert float(w[0]) == pytest.approx(384.8, abs=0.1) and float(w[3]) == float(w[0])
+    assert float(w[2]) == pytest.approx((1.055 / 2.4 / SRGB_SLOPE_AT_GREY) ** 2) and 0.44 < float(w[2]) < 0.45
+    assert float(display_weight(x, 10.0)[0]) == 10.0 and float(display_weight(x, 10.0)[1]) == pytest.approx(1.0)
+    batch = _batch()
+    xs = torch.tensor([0.001, 0.5, 0.7, 0.95], requires_grad=True)
+    img, pix = torch.tensor([0, 0, 1, 1]), torch.tensor([0, 3, 2, 5])
+    plain = method_loss(METHODS["spikelik"], xs, img, pix, batch, INTENSITY)[0]
+    weighted = method_loss(METHODS["spikelik"], xs, img, pix, batch, INTENSITY, srgb_weight=1000.0)[0]
+    # the weighted mean is the plain terms' mean with the weights (as computed by hand)
+    lam = neuron.spike_rate(xs, INTENSITY, batch.resp[pix], batch.dark[pix])
+    frames = batch.frames[img]
+    terms = ((neuron.expected_count(lam, frames) - batch.values[img, pix]).square() / (6 / 6)
+             * (256 / (INTENSITY * frames)).square())
+    assert float(plain.detach()) == pytest.approx(float(terms.mean().detach()), rel=1e-6)
+    want = (terms * display_weight(xs, 1000.0)).mean().detach()
+    assert float(weighted.detach()) == pytest.approx(float(want), rel=1e-6)
+    g_plain = torch.autograd.grad(plain, xs)[0]
+    g_weighted = torch.autograd.grad(weighted, xs)[0]
+    ratio = g_weighted / g_plain  # the weight is not differentiated: each ray's gradient scales by its weight
+    assert torch.allclose(ratio, display_weight(xs, 1000.0), rtol=1e-5)

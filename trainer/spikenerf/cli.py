@@ -85,6 +85,11 @@ def _fractions(ctx, param, value: str) -> tuple:
               help=f"Train the first fraction F of the iterations on the images box-downsampled {COARSE_FACTOR} "
                    "times a side (growing the grid as a run at that size does), then the rest at full size. 0 = full "
                    "size throughout.")
+@click.option("--srgb-weight", "srgb_weight", default=TrainConfig.srgb_weight, show_default=True,
+              type=click.FloatRange(min=0), metavar="MOST",
+              help="Weight each ray's likelihood term by the sRGB encoding's slope at its rendered luminance over "
+                   "the slope at grey, squared, at most MOST (385 and above: no cap), so that dark errors weigh as "
+                   "on a display (spikelik methods). 0 = off.")
 @click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
               help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
 @click.option("--grid-final", default=TrainConfig.grid_final, show_default=True, type=click.IntRange(min=0),
@@ -125,7 +130,7 @@ def _fractions(ctx, param, value: str) -> tuple:
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, windows, sensor_maps, out, seed, batch_rays, lr_grid,
-          lr_decay, adam_eps, error_rays, coarse_to_fine, sh_degree,
+          lr_decay, adam_eps, error_rays, coarse_to_fine, srgb_weight, sh_degree,
           grid_final, fit_box, space, stop_transmittance, step_ratio, upsample_at, tv_weight, tv_luminance, tv_points,
           lazy_above,
           checkpoint_every, do_eval, quiet):
@@ -136,7 +141,7 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
                       frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
-                      adam_eps=adam_eps, error_rays=error_rays, coarse_to_fine=coarse_to_fine,
+                      adam_eps=adam_eps, error_rays=error_rays, coarse_to_fine=coarse_to_fine, srgb_weight=srgb_weight,
                       sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, stop_transmittance=stop_transmittance,
                       step_ratio=step_ratio, upsample_at=upsample_at, tv_weight=tv_weight,

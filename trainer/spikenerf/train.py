@@ -138,10 +138,26 @@ class Batch:
         return move(img), move(pix), move(jitter), (None if weights is None else move(weights))
 
 
-def method_loss(method, x, img, pix, batch: Batch, intensity: float, weights: torch.Tensor | None = None):
+# the sRGB encoding's slope at mid-grey (X = 0.5): display_weight is 1 there
+SRGB_SLOPE_AT_GREY = 1.055 / 2.4 * 0.5 ** (1 / 2.4 - 1)
+
+
+def display_weight(x: torch.Tensor, most: float) -> torch.Tensor:
+    """``--srgb-weight``: each ray's weight in the likelihood, the squared slope of the sRGB encoding at its
+    rendered luminance ``x`` (detached) over the slope at mid-grey, at most ``most``. An error of the rendered
+    luminance then weighs about as it does on a display, where evaluation measures it: 385 times a grey one's
+    below X = 0.0031 (the encoding's linear part), 0.45 times at white."""
+    x = x.detach().clamp(0, 1)
+    slope = torch.where(x <= 0.0031308, 12.92, 1.055 / 2.4 * x.clamp(min=0.0031308) ** (1 / 2.4 - 1))
+    return (slope / SRGB_SLOPE_AT_GREY).square().clamp(max=most)
+
+
+def method_loss(method, x, img, pix, batch: Batch, intensity: float, weights: torch.Tensor | None = None,
+                srgb_weight: float = 0.0):
     """(loss, prediction, observation): the last two ``[n]`` in comparable units (radiance-like; for
     ``spikenerf-paper`` the gamma-encoded rate of its targets), for the progress bar's PSNR. ``weights``
-    ``[n]``: the rays' weights in the mean (``--error-rays``: ErrorRays.weights), else 1."""
+    ``[n]``: the rays' weights in the mean (``--error-rays``: ErrorRays.weights), else 1. ``srgb_weight`` > 0
+    (``--srgb-weight``, the likelihood methods only): each term also weighted by :func:`display_weight`."""
     def mean(terms):
         return terms.mean() if weights is None else (terms * weights).mean()
 
@@ -164,7 +180,8 @@ def method_loss(method, x, img, pix, batch: Batch, intensity: float, weights: to
         exact = method.exact_sensor
         var = neuron.count_variance(mu.detach(), tg.electrons if exact else 0.0,
                                     jitter=tg.threshold_jitter if exact else 0.0)
-        loss = mean((mu - obs).square() / (6.0 * var) * to_x.square())
+        terms = (mu - obs).square() / (6.0 * var) * to_x.square()
+        loss = mean(terms if srgb_weight <= 0 else terms * display_weight(x, srgb_weight))
     else:
         loss = mean(((mu - obs) * to_x).square())
     return loss, mu * to_x, obs * to_x
@@ -236,11 +253,11 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
-           "adam_eps": 1e-8, "error_rays": 0.0, "coarse_to_fine": 0.0, "tv_luminance": "logit",
+           "adam_eps": 1e-8, "error_rays": 0.0, "coarse_to_fine": 0.0, "tv_luminance": "logit", "srgb_weight": 0.0,
            "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "adam_eps",
-                "error_rays", "coarse_to_fine", "tv_luminance", "stop_transmittance", "grid_start", "grid_final",
+                "error_rays", "coarse_to_fine", "tv_luminance", "srgb_weight", "stop_transmittance", "grid_start", "grid_final",
                 "step_ratio", "upsample_at",
                 "sh_degree", "sh_scale", "frames", "windows", "statistic", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
@@ -275,6 +292,10 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     if cfg.coarse_to_fine > 0 and (H % COARSE_FACTOR or W % COARSE_FACTOR or W // COARSE_FACTOR < 8):
         raise InputError(f"--coarse-to-fine: the training images' {W} x {H} must shrink {COARSE_FACTOR} times a side "
                          f"to at least 8 pixels across")
+    if cfg.srgb_weight < 0:
+        raise InputError(f"--srgb-weight must be >= 0 (0 = off), got {cfg.srgb_weight}")
+    if cfg.srgb_weight > 0 and method.loss != "nll":
+        raise InputError(f"--srgb-weight is for the likelihood methods (spikelik, spikelik-count), not {cfg.method}")
     if cfg.tv_points and cfg.tv_luminance != "logit":
         raise InputError("--tv-luminance is for the block prior; --tv-points compares the stored values")
     asked_windows = cfg.windows
@@ -401,7 +422,7 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
             x, _ = render_rays(field, o, d, jitter, background, stop=cfg.stop_transmittance)
         else:  # sampled uniformly in NDC from the near plane, composited as evaluation and rendering do
             (x, _), _ = render_ndc_rays(field, space, o, d, jitter, background, stop=cfg.stop_transmittance)
-        loss, pred, obs = method_loss(method, x, img, pix, batch, intensity, weights)
+        loss, pred, obs = method_loss(method, x, img, pix, batch, intensity, weights, cfg.srgb_weight)
         if cfg.tv_weight > 0:
             tv = (field.tv_at_points(gen, cfg.tv_points) if cfg.tv_points and not field.sparse
                   else field.tv_loss(gen, luminance=cfg.tv_luminance))
