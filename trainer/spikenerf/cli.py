@@ -141,8 +141,8 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
                       frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
-                      adam_eps=adam_eps, error_rays=error_rays, coarse_to_fine=coarse_to_fine, srgb_weight=srgb_weight,
-                      sh_degree=sh_degree,
+                      adam_eps=adam_eps, error_rays=error_rays, coarse_to_fine=coarse_to_fine,
+                      srgb_weight=srgb_weight, sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, stop_transmittance=stop_transmittance,
                       step_ratio=step_ratio, upsample_at=upsample_at, tv_weight=tv_weight,
                       tv_luminance=tv_luminance, tv_points=tv_points,
