@@ -44,11 +44,9 @@ def collect(runs: list[Path]) -> dict:
     return {"runs": out}
 
 
-def _steps(pred: float | None, truth: float | None) -> str:
+def _steps(pred: float, truth: float) -> float:
     """The bias on a display: sRGB(pred) - sRGB(truth), in 8-bit steps."""
-    if pred is None:
-        return "-"
-    return f"{255 * (float(linear_to_srgb(pred)) - float(linear_to_srgb(truth))):+.1f}"
+    return 255 * (float(linear_to_srgb(pred)) - float(linear_to_srgb(truth)))
 
 
 def _bias(v) -> str:
@@ -71,7 +69,7 @@ def table(record: dict) -> str:
         for r in runs:
             t = r["tone"][b]
             cells += [str(t["pixels"]), _bias(t["bias"]), str(t["flat_pixels"]), _bias(t["flat_bias"]),
-                      _steps(t["flat_pred"], t["flat_truth"])]
+                      "-" if t["flat_pred"] is None else f"{_steps(t['flat_pred'], t['flat_truth']):+.1f}"]
         lines.append("| " + " | ".join(cells) + " |")
     return "\n".join(lines)
 
@@ -82,7 +80,7 @@ def plot(record: dict, path: Path) -> None:
     def draw(ax):
         for r in record["runs"]:
             rows = [t for t in r["tone"] if t["flat_pixels"]]
-            ax.plot([t["flat_truth"] for t in rows], [float(_steps(t["flat_pred"], t["flat_truth"])) for t in rows],
+            ax.plot([t["flat_truth"] for t in rows], [_steps(t["flat_pred"], t["flat_truth"]) for t in rows],
                     marker="o", label=f"{r['run']} ({r['method']}, {r['resolution'][1]} px)")
         ax.axhline(0.0, color="grey", lw=0.8)
         ax.set_xscale("log")

@@ -408,15 +408,25 @@ def split_count(grid: torch.Tensor, points: int) -> int:
     return CPU_SPLIT if grid.device.type == "cpu" and points * 64 >= grid.numel() else 1
 
 
-def _srgb(v: torch.Tensor) -> torch.Tensor:
-    """The sRGB encoding of linear values in [0, 1] (its power's slope bounded as in train.linear_to_srgb)."""
+def linear_to_srgb(v: torch.Tensor) -> torch.Tensor:
+    """The sRGB encoding (spikeio.linear_to_srgb) of linear values, differentiable (the power's slope
+    is bounded by evaluating it at 0.0031308 and above only)."""
+    v = v.clamp(min=0)
     return torch.where(v <= 0.0031308, v * 12.92, 1.055 * v.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
+
+
+def srgb_slope(v: torch.Tensor) -> torch.Tensor:
+    """d :func:`linear_to_srgb` / dX at linear values ``v`` in [0, 1]: 12.92 on its linear part."""
+    return torch.where(v <= 0.0031308, 12.92, 1.055 / 2.4 * v.clamp(min=0.0031308) ** (1 / 2.4 - 1))
+
+
+SRGB_SLOPE_AT_GREY = 1.055 / 2.4 * 0.5 ** (1 / 2.4 - 1)  # srgb_slope at X = 0.5
 
 
 TV_FLOOR = 0.02  # tv_loss(luminance="floored"): luminance below which a voxel's logit feels no prior
 _TV_FLOOR_LOGIT = math.log(TV_FLOOR / (1 - TV_FLOOR))
 # 1 / (d sRGB(sigmoid(z)) / dz at z = 0): the sRGB encoding of the luminance, scaled to the logit's slope at grey
-_SRGB_AT_GREY = 1.0 / (0.25 * 1.055 / 2.4 * 0.5 ** (1 / 2.4 - 1))
+_SRGB_AT_GREY = 1.0 / (0.25 * SRGB_SLOPE_AT_GREY)
 
 
 def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None, luminance: str = "logit") -> torch.Tensor:
@@ -441,7 +451,7 @@ def _tv(grid: torch.Tensor, block: int, generator, tape: list | None = None, lum
         sub = torch.cat([sub[:, :1], sub[:, 1:].clamp(min=_TV_FLOOR_LOGIT)], dim=1)
     elif luminance in ("linear", "srgb"):  # scaled to the logit's slope at mid-grey (logit 0): the same prior there
         lum = torch.sigmoid(sub[:, 1:])
-        lum = 4.0 * lum if luminance == "linear" else _SRGB_AT_GREY * _srgb(lum)
+        lum = 4.0 * lum if luminance == "linear" else _SRGB_AT_GREY * linear_to_srgb(lum)
         sub = torch.cat([sub[:, :1], lum], dim=1)
     return scale * (sub.diff(dim=2).square().mean() + sub.diff(dim=3).square().mean() + sub.diff(dim=4).square().mean())
 

@@ -22,7 +22,7 @@ from .config import COARSE_FACTOR, SPACES, TrainConfig, default_iters
 from .data import load_dataset
 from .errorrays import ErrorRays
 from .methods import METHODS
-from .model import GridField
+from .model import SRGB_SLOPE_AT_GREY, GridField, linear_to_srgb, srgb_slope
 from .optim import LazyGridAdam
 from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
 from .targets import Targets, build_targets, count_windows
@@ -138,18 +138,12 @@ class Batch:
         return move(img), move(pix), move(jitter), (None if weights is None else move(weights))
 
 
-# the sRGB encoding's slope at mid-grey (X = 0.5): display_weight is 1 there
-SRGB_SLOPE_AT_GREY = 1.055 / 2.4 * 0.5 ** (1 / 2.4 - 1)
-
-
 def display_weight(x: torch.Tensor, most: float) -> torch.Tensor:
     """``--srgb-weight``: each ray's weight in the likelihood, the squared slope of the sRGB encoding at its
     rendered luminance ``x`` (detached) over the slope at mid-grey, at most ``most``. An error of the rendered
     luminance then weighs about as it does on a display, where evaluation measures it: 385 times a grey one's
     below X = 0.0031 (the encoding's linear part), 0.45 times at white."""
-    x = x.detach().clamp(0, 1)
-    slope = torch.where(x <= 0.0031308, 12.92, 1.055 / 2.4 * x.clamp(min=0.0031308) ** (1 / 2.4 - 1))
-    return (slope / SRGB_SLOPE_AT_GREY).square().clamp(max=most)
+    return (srgb_slope(x.detach().clamp(0, 1)) / SRGB_SLOPE_AT_GREY).square().clamp(max=most)
 
 
 def method_loss(method, x, img, pix, batch: Batch, intensity: float, weights: torch.Tensor | None = None,
@@ -185,13 +179,6 @@ def method_loss(method, x, img, pix, batch: Batch, intensity: float, weights: to
     else:
         loss = mean(((mu - obs) * to_x).square())
     return loss, mu * to_x, obs * to_x
-
-
-def linear_to_srgb(v: torch.Tensor) -> torch.Tensor:
-    """The sRGB encoding (spikeio.linear_to_srgb) of linear values, differentiable (the power's slope
-    is bounded by evaluating it at 0.0031308 and above only)."""
-    v = v.clamp(min=0)
-    return torch.where(v <= 0.0031308, v * 12.92, 1.055 * v.clamp(min=0.0031308) ** (1 / 2.4) - 0.055)
 
 
 def iteration_generator(seed: int, it: int) -> torch.Generator:
@@ -319,12 +306,12 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
         log(f"{ds.root}: {why}" + ("" if space else "; the field stays in the world cube [-1.5, 1.5]^3"))
     tg = build_targets(ds, method, H, W, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None,
                        windows=cfg.windows)
-    coarse = None  # --coarse-to-fine: (its targets, their height, width and camera), each window count its own
+    coarse = None  # --coarse-to-fine: ((its targets, their height, width, camera), first full-size iteration)
     if coarse_until(cfg) > 0:
         h, w = H // COARSE_FACTOR, W // COARSE_FACTOR
         tc = build_targets(ds, method, h, w, progress=progress, frames=cfg.frames, maps_file=cfg.sensor_maps or None,
                            windows=count_windows(ds, method, h, w, cfg.frames, asked_windows))
-        coarse = (tc, h, w, ds.camera(h, w))
+        coarse = ((Batch(tc, device), h, w, ds.camera(h, w)), coarse_until(cfg))
     cfg = dataclasses.replace(cfg, statistic=tg.statistic)
     if cfg.windows > 1:
         log(f"{ds.root}: the counts of each moving view in {cfg.windows} windows of about {cfg.frames / cfg.windows:.0f} "
@@ -333,8 +320,6 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     remove_stale_parts(out)  # a run killed while writing a checkpoint leaves its temporary behind
     ck_path = out / CHECKPOINT
     batch = Batch(tg, device)
-    if coarse is not None:
-        coarse = (Batch(coarse[0], device), *coarse[1:], coarse_until(cfg))
     focal = ds.camera(H, W)  # a float (square pixels, centred) or (fl_x, fl_y, cx, cy)
     field = make_field(cfg, W, space).to(device)
     opt = make_optimizer(field, cfg)
@@ -392,7 +377,7 @@ def _frames(ds, frames: int | None) -> int:
 
 def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train_s, out, progress, stop_at,
           mined=None, coarse=None):
-    """``coarse`` (``--coarse-to-fine``): (Batch, height, width, camera, first full-size iteration) of the
+    """``coarse`` (``--coarse-to-fine``): ((Batch, height, width, camera), first full-size iteration): the
     downsampled images the iterations before it draw their rays from; error rays start with the full size."""
     H, W, focal, background, space = cam
     fine = (batch, H, W, focal)
@@ -412,8 +397,8 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         if it >= cfg.occupancy_after and it % cfg.occupancy_every == 0:
             field.update_occupancy(cfg.occupancy_threshold)
         gen = iteration_generator(cfg.seed, it)
-        at_coarse = coarse is not None and it < coarse[4]
-        batch, h, w, camera = coarse[:4] if at_coarse else fine
+        at_coarse = coarse is not None and it < coarse[1]
+        batch, h, w, camera = coarse[0] if at_coarse else fine
         mining = None if at_coarse else mined
         img, pix, jitter, weights = batch.draw(cfg.batch_rays, gen, mining)
         o, d = pixel_rays(batch.poses[img], pix, h, w, camera)
