@@ -12,7 +12,7 @@ scene: ``spikegen render`` with the moving camera, its test split held out), the
 and seed ``spikenerf train`` and ``spikenerf eval``. Each finished run becomes one line of
 ``bench/results/protocol.jsonl``: what it was (data, sensor, intensity, method, what the method knows
 of the sensor, resolution, seed, iterations, frames, rays a step (rows without it: the default
-2048), device), what it cost (train seconds, wall
+2048), the sRGB weight of ``--srgb-weight`` (rows without it: 0, off), device), what it cost (train seconds, wall
 seconds, the load average) and every metric (means and per view). A run already in the file is
 skipped, so a long table is completed over several sessions; work folders live in ``--out``, and a
 run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
@@ -28,7 +28,8 @@ linear Eqs. S2-S6 for the integrate-and-fire sensors, the rsir fit for ``rsir``;
 ``calibration_fit``, and rows without it were made with Eqs. S2-S6). ``--plan`` keeps, of the runs asked
 for, those of the protocol's plan (bench/make_protocol.py ``PLAN``: what its "Still missing" counts), its
 calibrated-maps runs included. No setting is chosen here: every method runs
-with the trainer's defaults. ``oracle`` (not a spike method; it knows the ground-truth images of the
+with the trainer's defaults, except where a call names one (``--iters``, ``--frames``, ``--batch-rays``,
+``--srgb-weight``), which its rows state and the tables show in their own rows. ``oracle`` (not a spike method; it knows the ground-truth images of the
 train views) is the same field fitted to those images: what the field can represent.
 """
 from __future__ import annotations
@@ -71,9 +72,13 @@ TABLE_ORDER = METHODS[:1] + EXTRA_METHODS + METHODS[1:]  # the order of the meth
 # were made with the preset of commits dfecb33 to 76ab7ef: shot noise of N_e = 1.383e4, no jitter.
 LEGACY_CALIBRATED = {"electrons": 13829.406571440471, "threshold_jitter": 0.0}
 KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed", "iterations", "frames", "field",
-       "batch_rays", "calibration_fit")
+       "batch_rays", "calibration_fit", "srgb_weight")
 # rays a training step (spikenerf train --batch-rays): rows without the key were made at the trainer's default
 DEFAULT_RAYS = TrainConfig.__dataclass_fields__["batch_rays"].default
+# each ray's display weight in the likelihood (spikenerf train --srgb-weight; 0 = off): rows without the key: 0
+DEFAULT_SRGB_WEIGHT = TrainConfig.__dataclass_fields__["srgb_weight"].default
+# the methods that take --srgb-weight (those whose loss is the counts' likelihood)
+SRGB_METHODS = ("spikelik", "spikelik-count")
 CAL_INTENSITY, CAL_FRAMES = 64.0, 2000  # the simulated calibration recordings: a dark and two flats
 CAL_FLATS_X = (0.25, 0.75)  # flat radiances; their "lux" is the nominal rate X * I / 256 (spikes per frame)
 
@@ -168,7 +173,12 @@ def calibration_fit(row: dict) -> str | None:
 def row_key(row: dict) -> tuple:
     return tuple(row.get(k, OLD_FIELD) if k == "field" else sensor_name(row) if k == "sensor" else
                  row.get(k, DEFAULT_RAYS) if k == "batch_rays" else calibration_fit(row) if k == "calibration_fit"
-                 else row[k] for k in KEY)
+                 else srgb_weight(row) if k == "srgb_weight" else row[k] for k in KEY)
+
+
+def srgb_weight(row: dict) -> float:
+    """The row's ``--srgb-weight`` (rows from before the key: the default, off)."""
+    return float(row.get("srgb_weight", DEFAULT_SRGB_WEIGHT))
 
 
 def done_keys(results: Path = RESULTS) -> set:
@@ -179,19 +189,22 @@ def done_keys(results: Path = RESULTS) -> set:
 
 def run_one(folder: Path, cell: dict, args) -> dict:
     """Train and evaluate one run; the results line."""
-    # (the folder's name: the key's values; the rays a step and the calibration's fit only where not the
-    # default, so that the folders of runs from before those keys are found again and resume)
-    name = "_".join(str(cell[k]) for k in KEY if k not in ("batch_rays", "calibration_fit"))
+    # (the folder's name: the key's values; the rays a step, the calibration's fit and the sRGB weight only
+    # where not the default, so that the folders of runs from before those keys are found again and resume)
+    name = "_".join(str(cell[k]) for k in KEY if k not in ("batch_rays", "calibration_fit", "srgb_weight"))
     name = name.replace(" ", "-").replace(",", "")
-    rays, fit = cell["batch_rays"], calibration_fit(cell)
+    rays, fit, weight = cell["batch_rays"], calibration_fit(cell), srgb_weight(cell)
     run = args.out / f"runs_{args.resolution}" / (name + ("" if rays == DEFAULT_RAYS else f"_rays{rays}")
-                                                  + ("" if fit in (None, "if") else f"_{fit}fit"))
+                                                  + ("" if fit in (None, "if") else f"_{fit}fit")
+                                                  + ("" if weight == DEFAULT_SRGB_WEIGHT else f"_srgbw{weight:g}"))
     cmd = ["spikenerf", "train", str(folder), "--method", cell["method"], "--out", str(run), "--device",
            args.device, "--seed", str(cell["seed"]), "--quiet", "--iters", str(cell["iterations"])]
     if cell["frames"]:
         cmd += ["--frames", str(cell["frames"])]
     if rays != DEFAULT_RAYS:
         cmd += ["--batch-rays", str(rays)]
+    if weight != DEFAULT_SRGB_WEIGHT:
+        cmd += ["--srgb-weight", f"{weight:g}"]
     if cell["knowledge"] == "calibrated maps":
         cmd += ["--sensor-maps", str(calibration(cell["sensor"], args, fit))]
     resumed = _checkpoint_iteration(run)
@@ -266,6 +279,8 @@ def cells(args):
                                 "knowledge": knows, "resolution": args.resolution, "seed": seed,
                                 "iterations": args.iters or default_iters(args.resolution, args.resolution),
                                 "frames": args.frames, "field": FIELD, "batch_rays": args.batch_rays,
+                                **({"srgb_weight": args.srgb_weight} if args.srgb_weight != DEFAULT_SRGB_WEIGHT
+                                   else {}),
                                 **({"calibration_fit": args.calibration_kind or sensor_kind(sensor)}
                                    if knows == "calibrated maps" else {})}
 
@@ -284,6 +299,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=0, help="train from the first w frames (0 = all)")
     ap.add_argument("--batch-rays", type=int, default=DEFAULT_RAYS, help="rays a training step (spikenerf train "
                     "--batch-rays); stated in every row")
+    ap.add_argument("--srgb-weight", type=float, default=DEFAULT_SRGB_WEIGHT, help="each ray's display weight in "
+                    "the likelihood, at most this (spikenerf train --srgb-weight; the likelihood methods only; "
+                    "0 = off); stated in the rows that set it")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
     ap.add_argument("--calibrated-methods", default="", help="with --calibrated or --plan: only these of the "
@@ -319,9 +337,15 @@ def main() -> None:
     if args.calibrated_methods and not (args.calibrated or args.plan):
         sys.exit("--calibrated-methods needs --calibrated or --plan")
     if args.plan and (args.iters not in (0, default_iters(args.resolution, args.resolution)) or args.frames
-                      or args.batch_rays != DEFAULT_RAYS):
-        sys.exit("--plan: the plan's runs are at the default iterations, frames and rays a step "
-                 "(no --iters, --frames or --batch-rays)")
+                      or args.batch_rays != DEFAULT_RAYS or args.srgb_weight != DEFAULT_SRGB_WEIGHT):
+        sys.exit("--plan: the plan's runs are at the default iterations, frames, rays a step and sRGB weight "
+                 "(no --iters, --frames, --batch-rays or --srgb-weight)")
+    if args.srgb_weight < 0 or not math.isfinite(args.srgb_weight):
+        sys.exit(f"--srgb-weight must be a number >= 0 (0 = off), got {args.srgb_weight}")
+    unweighted = [m for m in args.methods if m not in SRGB_METHODS]
+    if args.srgb_weight != DEFAULT_SRGB_WEIGHT and unweighted:
+        sys.exit(f"--srgb-weight is for the likelihood methods ({', '.join(SRGB_METHODS)}), "
+                 f"not {', '.join(unweighted)}")
     mapless = [m for m in args.calibrated_methods if KNOWLEDGE[m] != "true maps" or m not in args.methods]
     if mapless:
         sys.exit(f"--calibrated-methods: {', '.join(mapless)} not among the --methods that use the sensor's maps")

@@ -336,11 +336,15 @@ def test_gpu_runs_at_the_default_budget_fill_the_tables_once():
     (["--plan", "--batch-rays", "8192"], "--plan: the plan's runs are at the default iterations"),
     (["--calibrated", "--calibrated-methods", "tfp32"], "tfp32 not among the --methods that use the sensor's maps"),
     (["--calibrated", "--calibrated-methods", "spikenerf"], "spikenerf not among"),
-    (["--calibrated", "--calibrated-methods", "nope"], "unknown methods ['nope']")])
+    (["--calibrated", "--calibrated-methods", "nope"], "unknown methods ['nope']"),
+    (["--plan", "--srgb-weight", "400"], "--plan: the plan's runs are at the default iterations"),
+    (["--srgb-weight", "400"], "--srgb-weight is for the likelihood methods (spikelik, spikelik-count), not tfp32"),
+    (["--methods", "spikelik", "--srgb-weight", "-1"], "--srgb-weight must be a number >= 0"),
+    (["--methods", "spikelik", "--srgb-weight", "nan"], "--srgb-weight must be a number >= 0")])
 def test_runner_bad_input(tmp_path, monkeypatch, extra, message):
     """--calibrated-methods without --calibrated or --plan, or naming a method that is not run with the
-    sensor's maps; --plan off the default budget; intensities or seeds that are not whole numbers: one
-    line, before anything is made."""
+    sensor's maps; --plan off the default budget or sRGB weight; --srgb-weight for a method without the
+    likelihood, or below 0; intensities or seeds that are not whole numbers: one line, before anything is made."""
     import bench_protocol
     monkeypatch.setattr(sys, "argv", ["bench_protocol.py", "--data", "chair", "--methods", "spikelik,tfp32",
                                       "--out", str(tmp_path / "out"), "--results", str(tmp_path / "r.jsonl"), *extra])
@@ -363,7 +367,8 @@ def test_plan_asks_for_the_runs_still_missing_counts():
         args = argparse.Namespace(**{"data": [data], "sensors": sensors, "intensities": intensities,
                                      "methods": list(bench_protocol.METHODS), "seeds": [0, 1, 2], "calibrated": False,
                                      "calibrated_methods": [], "resolution": res, "iters": 0, "frames": 0,
-                                     "batch_rays": 2048, "calibration_kind": None, "plan": True, **kw})
+                                     "batch_rays": 2048, "calibration_kind": None, "plan": True,
+                                     "srgb_weight": 0.0, **kw})
         return [(c["sensor"], c["intensity"], c["method"], c["knowledge"], c["seed"])
                 for *_, c in bench_protocol.cells(args)]
 
@@ -491,7 +496,7 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
     # the runner asks for the camera's own fit, and --calibration-kind overrides it
     args = argparse.Namespace(data=["lego"], sensors=["rsir", "paper"], intensities=[64], methods=["spikelik"],
                               seeds=[0], calibrated=True, calibrated_methods=[], resolution=100, iters=0, frames=0,
-                              batch_rays=2048, calibration_kind=None, plan=False)
+                              batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=0.0)
     fits = {(c["sensor"], c.get("calibration_fit")) for *_, c in bench_protocol.cells(args)}
     assert fits == {("rsir", None), ("rsir", "rsir"), ("paper", None), ("paper", "if")}
     args.calibration_kind = "if"
@@ -517,3 +522,61 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
                      ("tfp32", "none", 0), ("tfp32", "none", 1)]
     assert ("spikelik", "calibrated maps") in make_protocol.PLANNED_LEGO
     assert ("spikenerf", "calibrated maps") not in make_protocol.PLANNED_LEGO
+
+
+def test_runs_with_an_srgb_weight_are_other_runs(tmp_path, monkeypatch):
+    """``--srgb-weight W``: the runner trains with it, in a folder of its own, and its rows record it (rows
+    without the key: 0, off); such a row is its own key, fills no planned slot, and stands in the tables as its
+    own method line (``spikelik --srgb-weight W``, right after spikelik) with its own target line."""
+    import argparse
+
+    import bench_protocol
+    args = argparse.Namespace(data=["lego"], sensors=["rsir"], intensities=[64], methods=["spikelik"], seeds=[0],
+                              calibrated=False, calibrated_methods=[], resolution=400, iters=0, frames=0,
+                              batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=400.0,
+                              out=tmp_path, device="cpu")
+    cell = next(bench_protocol.cells(args))[-1]
+    assert cell["srgb_weight"] == 400.0
+    calls = []
+
+    def fake_run(cmd):  # what spikenerf train and eval would leave in the run folder
+        calls.append(cmd)
+        run = Path(cmd[cmd.index("--out") + 1] if "--out" in cmd else cmd[2])
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "config.json").write_text(json.dumps({"device_used": "cpu"}))
+        (run / "metrics.json").write_text(json.dumps({"train_seconds": 1.0, "psnr": 30.0, "psnr_object": 25.0,
+                                                      "per_view": []}))
+        return ""
+
+    monkeypatch.setattr(bench_protocol, "_run", fake_run)
+    row = bench_protocol.run_one(tmp_path / "data", cell, args)
+    train = calls[0]
+    assert train[train.index("--srgb-weight") + 1] == "400" and train[train.index("--out") + 1].endswith("_srgbw400")
+    assert row["srgb_weight"] == 400.0
+    args.srgb_weight = 0.0
+    plain = next(bench_protocol.cells(args))[-1]
+    assert "srgb_weight" not in plain
+    calls.clear()
+    bench_protocol.run_one(tmp_path / "data", plain, args)
+    assert "--srgb-weight" not in calls[0] and calls[0][calls[0].index("--out") + 1].endswith("_9000_0_grid-fitted-box")
+
+    base = {**_row("spikelik", "true maps", 25.0, iterations=9000), "field": bench_protocol.FIELD}
+    weighted = {**base, "srgb_weight": 400.0, "metrics": {"psnr_object": 25.6}}
+    assert bench_protocol.row_key(base) == bench_protocol.row_key({**base, "srgb_weight": 0.0})
+    assert bench_protocol.row_key(weighted) != bench_protocol.row_key(base)
+    path = tmp_path / "rows.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in (base, weighted)))
+    rows = make_protocol.load(path)
+    assert [r["method"] for r in rows] == ["spikelik", "spikelik --srgb-weight 400"]
+    lines = make_protocol.table(rows + [{**base, "method": "spikenerf-paper"}], "psnr_object", "method")
+    names = [x.split("|")[1].strip() for x in lines[2:]]
+    assert names == ["spikelik", "spikelik --srgb-weight 400", "spikenerf-paper"]
+    assert "25.60 (1)" in lines[3] and "25.00 (1)" in lines[2]
+    targets = make_protocol.targets(rows + [{**base, "method": "spikenerf-paper", "metrics": {"psnr_object": 24.0}}])
+    weighted_line = next(x for x in targets if "spikelik --srgb-weight 400: not the default" in x)
+    assert "| +1.60 (not met; 1 of 3 seeds) |" in weighted_line
+
+    def left(rs):
+        line = next(x for x in make_protocol.missing(rs) if "lego, rsir, 400 x 400" in x)
+        return int(line.split(": ")[1].split(" of ")[0])
+    assert left(rows[1:]) == left([]) == left(rows[:1]) + 1
