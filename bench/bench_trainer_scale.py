@@ -23,6 +23,7 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--runs 100:9000,400:27000:1,400:81000:1]   # a third field: that run's --step-ratio (default: the trainer's, 0.5)
         [--runs 100:9000,400:9000:0.5:0.5]   # a fourth: its --error-rays (default: the trainer's, 0)
         [--method oracle]   # another method (default spikelik)
+        [--srgb-weight 400]   # every run with the trainer's --srgb-weight (default: the trainer's, 0: off)
         [--json FILE]  # the rows and the load averages, for the record
         [--device cuda]  # train and evaluate on the GPU (its name and peak GPU memory join the rows)
     python bench/bench_trainer_scale.py --table FILE   # the table of a saved --json file again
@@ -47,7 +48,7 @@ CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its it
 
 def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool,
           method: str = "spikelik", device: str = "cpu", step_ratio: float = TrainConfig.step_ratio,
-          error_rays: float = TrainConfig.error_rays) -> dict:
+          error_rays: float = TrainConfig.error_rays, srgb_weight: float = TrainConfig.srgb_weight) -> dict:
     """Train and evaluate one run in this process; the figures as a dict."""
     from spikenerf.eval import evaluate
     from spikenerf.train import train
@@ -55,7 +56,7 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
     # --sparse: the lazy optimiser for grids above 128^3 (the 400 x 400 run's final grid)
     lazy = {"lazy_above": 128 ** 3} if sparse else {}
     cfg = TrainConfig(dataset=dataset, iters=iters, resolution=resolution, device=device, method=method,
-                      step_ratio=step_ratio, error_rays=error_rays, **lazy)
+                      step_ratio=step_ratio, error_rays=error_rays, srgb_weight=srgb_weight, **lazy)
     t0 = time.perf_counter()
     ck = train(cfg, out, progress=False, log=lambda m: None)
     t_train = time.perf_counter() - t0
@@ -67,7 +68,7 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
         import torch
         gpu["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
     return {"method": method, "resolution": resolution, "iters": iters, "step_ratio": cfg.step_ratio,
-            "error_rays": cfg.error_rays,
+            "error_rays": cfg.error_rays, "srgb_weight": cfg.srgb_weight,
             "device": device, **gpu,
             "train_s": t_train, "eval_s": t_eval, "views": m["views"],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -78,7 +79,8 @@ def run_child(args, resolution: int, iters: int, out: Path, step_ratio: float, e
     cmd = [sys.executable, __file__, args.dataset, "--iters", str(iters), "--child", str(resolution),
            "--out", str(out)] + (["--eval-views", str(args.eval_views)] if args.eval_views else []) + \
           (["--sparse"] if args.sparse else []) + ["--method", args.method, "--device", args.device,
-                                                   "--step-ratio", str(step_ratio), "--error-rays", str(error_rays)]
+                                                   "--step-ratio", str(step_ratio), "--error-rays", str(error_rays),
+                                                   "--srgb-weight", str(args.srgb_weight)]
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         sys.exit(f"the {resolution} x {resolution} run ({iters} iterations) failed: {res.stderr.strip().splitlines()[-1:]}")
@@ -86,10 +88,11 @@ def run_child(args, resolution: int, iters: int, out: Path, step_ratio: float, e
 
 
 def tripled(rows: list[dict], run: dict) -> dict | None:
-    """The run among ``rows`` at the same resolution, sample step and error-guided share with three times ``run``'s
-    iterations, if any."""
+    """The run among ``rows`` at the same resolution, sample step, error-guided share and sRGB weight with three
+    times ``run``'s iterations, if any."""
     return next((q for q in rows if q["resolution"] == run["resolution"] and _step(q) == _step(run)
-                 and _mined(q) == _mined(run) and q["iters"] == 3 * run["iters"]), None)
+                 and _mined(q) == _mined(run) and _weight(q) == _weight(run) and q["iters"] == 3 * run["iters"]),
+                None)
 
 
 def _step(row: dict) -> float:
@@ -100,13 +103,19 @@ def _mined(row: dict) -> float:
     return row.get("error_rays", 0.0)  # rows from before the option: every ray uniform
 
 
+def _weight(row: dict) -> float:
+    return row.get("srgb_weight", 0.0)  # rows from before the option: off
+
+
 def _key(row: dict) -> tuple:
-    """A run's identity within one dataset: (resolution, sample step, error-guided share, iterations)."""
-    return row["resolution"], _step(row), _mined(row), row["iters"]
+    """A run's identity within one dataset: (resolution, sample step, error-guided share, sRGB weight,
+    iterations)."""
+    return row["resolution"], _step(row), _mined(row), _weight(row), row["iters"]
 
 
 def _setting(row: dict) -> str:
-    return f"step {_step(row):g}" + (f", error rays {_mined(row):g}" if _mined(row) else "")
+    return (f"step {_step(row):g}" + (f", error rays {_mined(row):g}" if _mined(row) else "")
+            + (f", sRGB weight {_weight(row):g}" if _weight(row) else ""))
 
 
 def _gaps(rows: list[dict]):
@@ -235,11 +244,15 @@ def main() -> None:
                     help=argparse.SUPPRESS)  # the child's; --runs sets it
     ap.add_argument("--error-rays", type=float, default=TrainConfig.error_rays,
                     help=argparse.SUPPRESS)  # the child's; --runs sets it
+    ap.add_argument("--srgb-weight", type=float, default=TrainConfig.srgb_weight, help="every run with the "
+                    "trainer's --srgb-weight (each ray's display weight in the likelihood, at most this; 0 = off)")
     args = ap.parse_args()
     if args.table:
         files = [json.loads(f.read_text()) for f in args.table]
         for f, saved in zip(args.table, files):
-            print(f"{f.name}: {saved['dataset']}; method {saved['rows'][0].get('method', 'spikelik')}; "
+            weight = _weight(saved["rows"][0])
+            print(f"{f.name}: {saved['dataset']}; method {saved['rows'][0].get('method', 'spikelik')}"
+                  + (f" with --srgb-weight {weight:g}" if weight else "") + "; "
                   f"OMP_NUM_THREADS={saved['omp_threads']}; load average at start "
                   f"{' '.join(f'{x:.2f}' for x in saved['load_start'])}, at end "
                   f"{' '.join(f'{x:.2f}' for x in saved['load_end'])}; commit {saved.get('commit', '?')}")
@@ -249,15 +262,17 @@ def main() -> None:
         return
     if not args.dataset:
         ap.error("a dataset is needed (or --table FILE)")
+    if args.srgb_weight < 0 or (args.srgb_weight and args.method not in ("spikelik", "spikelik-count")):
+        ap.error("--srgb-weight must be >= 0, and is for the likelihood methods (spikelik, spikelik-count)")
     if args.child:
         print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse,
-                               args.method, args.device, args.step_ratio, args.error_rays)))
+                               args.method, args.device, args.step_ratio, args.error_rays, args.srgb_weight)))
         return
     load0 = os.getloadavg()
     plan_text = f"runs {args.runs}" if args.runs else f"{args.iters or 'the default'} iterations"
     print(f"load average at start: {' '.join(f'{x:.2f}' for x in load0)}; "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; "
-          f"{plan_text}; method {args.method}; device {args.device}; "
+          f"{plan_text}; method {args.method}; device {args.device}; sRGB weight {args.srgb_weight:g}; "
           f"{'lazy optimiser above 128^3' if args.sparse else 'dense Adam'}")
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         base = args.out or Path(tmp)
@@ -270,8 +285,9 @@ def main() -> None:
                 plan += [(res, 3 * iters, step, mined) for res, iters, step, mined in reversed(plan)]
         rows = []
         for res, iters, step, mined in plan:
-            rows.append(run_child(args, res, iters, base / f"run{res}_{iters}_step{step:g}_mined{mined:g}", step,
-                                  mined))
+            rows.append(run_child(args, res, iters, base / (f"run{res}_{iters}_step{step:g}_mined{mined:g}"
+                                                            + (f"_srgbw{args.srgb_weight:g}" if args.srgb_weight else "")),
+                                  step, mined))
             rows[-1]["load_after"] = round(os.getloadavg()[0], 2)  # the 1-minute load as the run ended
             print(f"  {res} x {res}, {iters} iterations: {rows[-1]['train_s']:.0f} s, object PSNR "
                   f"{rows[-1]['psnr_object']:.2f} (load {rows[-1]['load_after']:.2f})", flush=True)

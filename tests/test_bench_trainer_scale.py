@@ -57,3 +57,17 @@ def test_across_files_converged_runs_and_the_side_by_side_ratio(capsys):
     assert "no ratio of converged runs" in capsys.readouterr().out
     with pytest.raises(SystemExit):
         scale.across([a, _file([], dataset="E")], ["a", "e"])
+
+
+def test_runs_with_another_srgb_weight_are_not_each_others_3x_run(capsys):
+    """A run's 3 x run has its sRGB weight too (``--srgb-weight``; rows without it: 0, off): a weighted run at
+    three times the iterations says nothing of an unweighted one's convergence, and the lines name the weight."""
+    plain, weighted = _row(400, 9000, 250.0, 27.7), {**_row(400, 27000, 800.0, 27.8), "srgb_weight": 400.0}
+    assert scale.tripled([plain, weighted], plain) is None
+    scale.table([plain, weighted])
+    assert "no 400 x 400 run is shown converged" in capsys.readouterr().out
+    rows = [{**plain, "srgb_weight": 400.0}, weighted]
+    scale.table(rows)
+    out = capsys.readouterr().out
+    assert "400 x 400 (step 0.5, sRGB weight 400): object PSNR at 27000 minus at 9000 iterations: +0.10 dB" in out
+    assert scale.converged_runs(rows)[400]["iters"] == 9000
