@@ -44,9 +44,8 @@
 #              27000 iterations at the default 2048 rays a step (bench_trainer_scale.py --device cuda, 25 views;
 #              needs the spikelik stage's dataset): is the 9000-iteration run converged (0.3 dB), and in what time
 #   srgbw      spikelik with --srgb-weight 400 (docs/trainer.md "Weighting each ray as a display does") at 9000
-#              iterations of 2048 rays and 5063 of 32768, evaluated on all the held-out views as the protocol's
-#              rows are (needs the spikelik stage's dataset): the same runs' GPU rows without it score 25.83 and
-#              27.12 dB of object PSNR
+#              iterations of 2048 rays and 5063 of 32768, as protocol rows (bench_protocol.py --srgb-weight): the
+#              same runs' GPU rows without it score 25.83 and 27.12 dB of object PSNR
 #   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
 #              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
 #              whether its fewer steps make it faster on the GPU)
@@ -106,17 +105,6 @@ weights_only=False); print('stop', sys.argv[2], 'iterations', ck['iteration'], '
     done
 }
 export -f stop_ab
-srgbw_runs() {  # spikelik with --srgb-weight 400 at two budgets (needs DATA: spikelik first)
-    for b in "9000 2048" "5063 32768"; do
-        set -- $b
-        spikenerf train $DATA --iters $1 --batch-rays $2 --srgb-weight 400 --device cuda --quiet \
-            --out "bench_out/srgbw_$1_$2" || return 1
-        python3 -c "import sys; from spikenerf.eval import evaluate; m = evaluate(sys.argv[1], device='cuda', \
-progress=False); print(sys.argv[1], 'train s', m['train_seconds'], 'PSNR full / object', round(m['psnr'], 2), \
-round(m['psnr_object'], 2), 'views', m['views'])" "bench_out/srgbw_$1_$2"
-    done
-}
-export -f srgbw_runs
 for st in $STAGES; do
     case $st in
         tests) stage gpu_tests python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_trainer_gpu.py ;;
@@ -151,8 +139,9 @@ for st in $STAGES; do
               tail -n +"$(( $(wc -l < bench/results/protocol.jsonl) + 1 ))" "$F" > "$OUT/protocol_gpu.jsonl" ;;
         stop) if [ -d "$DATA" ]; then stage stop_ab bash -c stop_ab
               else echo "stop: no $DATA here (run the spikelik stage first)"; fi ;;
-        srgbw) if [ -d "$DATA" ]; then stage srgbw bash -c srgbw_runs
-               else echo "srgbw: no $DATA here (run the spikelik stage first)"; fi ;;
+        srgbw) stage protocol_srgbw_9000 $P --methods spikelik --seeds 0 --srgb-weight 400
+               stage protocol_srgbw_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 --batch-rays 32768 \
+                   --srgb-weight 400 ;;
         errorrays) if [ -d "$DATA" ]; then stage trainer_scale_errorrays python3 bench/bench_trainer_scale.py "$DATA" \
                        --device cuda --eval-views 25 --runs 400:9000:0.5:0.5,400:27000:0.5:0.5 \
                        --json "$OUT/trainer_scale_errorrays.json"
