@@ -377,7 +377,8 @@ def _record(row: dict, args) -> None:
         row = {**row, "jobs": args.jobs}
     with args.results.open("a") as fh:
         fh.write(json.dumps(row) + "\n")
-    print(f"  {row['data']} {row['sensor']} i{row['intensity']} {row['method']} seed {row['seed']}: PSNR "
+    weight = "" if srgb_weight(row) == DEFAULT_SRGB_WEIGHT else f" --srgb-weight {srgb_weight(row):g}"
+    print(f"  {row['data']} {row['sensor']} i{row['intensity']} {row['method']}{weight} seed {row['seed']}: PSNR "
           f"{row['metrics']['psnr']:.2f} / object {row['metrics']['psnr_object']:.2f}, train "
           f"{row['train_seconds']:.0f} s", flush=True)
 

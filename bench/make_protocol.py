@@ -508,6 +508,46 @@ def targets(rows: list) -> list[str]:
     return out
 
 
+def options_section(rows: list) -> list[str]:
+    """Each method run with a trainer option off its default (``spikelik --srgb-weight 400``) against the same
+    method at the defaults, seed for seed: per data set, sensor, size, budget, knowledge and intensity, the mean
+    of the per-seed differences ± their SD (the number of seeds run both ways in brackets), object and full PSNR
+    and object SSIM."""
+    base = {(r["resolution"], r["data"], r["sensor"], _budget(r), r["knowledge"], r["intensity"], r["frames"],
+             r["method"], r["seed"]): r for r in rows}
+    pairs = defaultdict(list)
+    for r in rows:
+        method = r["method"].split(" ")[0]
+        if method == r["method"]:
+            continue
+        twin = base.get((r["resolution"], r["data"], r["sensor"], _budget(r), r["knowledge"], r["intensity"],
+                         r["frames"], method, r["seed"]))
+        if twin is not None:
+            pairs[(r["resolution"], r["data"], r["sensor"], _budget(r), r["knowledge"], r["frames"], r["method"],
+                   r["intensity"])].append((r, twin))
+    if not pairs:
+        return []
+    out = ["| data | iters | method | knows | intensity | object PSNR | full PSNR | object SSIM |",
+           "|---|---|---|---|---|---|---|---|"]
+    for key in sorted(pairs, key=lambda k: (-k[0], k[1], k[2], k[3], _order(k[6]), k[4], k[5], k[7])):
+        res, data, sensor, budget, knows, frames, method, i = key
+        ps = pairs[key]
+
+        def diff(metric, digits):
+            v = np.array([a["metrics"][metric] - b["metrics"][metric] for a, b in ps], float)
+            sd = f" ± {v.std(ddof=1):.{digits}f}" if v.size > 1 else ""
+            return f"{v.mean():+.{digits}f}{sd} ({v.size})"
+        frames_text = "" if not frames else f", first {frames} frames"
+        out.append(f"| {data}, {sensor}, {res} x {res}{frames_text} | {_iters(budget)} | {method} | {knows} | i{i} | "
+                   f"{diff('psnr_object', 2)} | {diff('psnr', 2)} | {diff('ssim_object', 3)} |")
+    return ["## Trainer options off their defaults, against the defaults (seed for seed)", "",
+            "Each run with an option against the same method, data, knowledge, budget and seed at the trainer's "
+            "defaults, both in the tables above: the mean of the per-seed differences (with the option minus "
+            "without) ± their SD, the number of seeds made both ways in brackets. The two runs of a pair may come "
+            "from different commits (each section above lists its rows' commits); their times are in the "
+            "sections, not compared here.", ""] + out + [""]
+
+
 def port_bias_section(rows: list) -> list[str]:
     """PROTOCOL.md's section on the published neuron's rate loss (bench/bench_port_bias.py): its rate
     table, and per sensor, intensity and method the mean object PSNR of the runs as saved, with the loss
@@ -682,6 +722,7 @@ def main() -> None:
                   "first and last spike times there (docs/trainer.md, \"Spike times\"). Rows of `spikelik-count` "
                   "are that earlier default's, labelled as such; on the `rsir` sensor, whose spike times carry no "
                   "such bound, `spikelik` reads the counts as it did, and its rows are the same runs.", ""]
+    lines += options_section(rows)
     if PORT_BIAS.is_file():
         lines += port_bias_section([json.loads(x) for x in PORT_BIAS.read_text().splitlines() if x.strip()])
     if gpu:

@@ -580,3 +580,22 @@ def test_runs_with_an_srgb_weight_are_other_runs(tmp_path, monkeypatch):
         line = next(x for x in make_protocol.missing(rs) if "lego, rsir, 400 x 400" in x)
         return int(line.split(": ")[1].split(" of ")[0])
     assert left(rows[1:]) == left([]) == left(rows[:1]) + 1
+
+
+def test_options_section_pairs_each_run_with_the_default_run_of_its_seed():
+    """A run with a trainer option is set against the same method's default run of its seed (same data,
+    knowledge, budget, intensity): mean and SD of the per-seed differences; a seed with no default twin, or a
+    twin at another budget, is left out."""
+    def row(method, seed, obj, iterations=9000):
+        r = _row(method, "true maps", obj, seed=seed, iterations=iterations)
+        return {**r, "metrics": {"psnr_object": obj, "psnr": obj + 5, "ssim_object": obj / 100}}
+
+    rows = [row("spikelik", s, 25.0 + 0.1 * s) for s in range(2)]
+    rows += [row("spikelik --srgb-weight 400", s, 25.5 + 0.3 * s) for s in range(3)]  # seed 2: no default twin
+    rows += [row("spikelik", 2, 20.0, iterations=3000)]  # another budget: not seed 2's twin
+    lines = make_protocol.options_section(rows)
+    line = next(x for x in lines if x.startswith("| lego, rsir, 400 x 400 |"))
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    assert cells[2:5] == ["spikelik --srgb-weight 400", "true maps", "i64"]
+    assert cells[5] == "+0.60 ± 0.14 (2)" and cells[6] == "+0.60 ± 0.14 (2)" and cells[7] == "+0.006 ± 0.001 (2)"
+    assert make_protocol.options_section(rows[:2]) == []  # no option off its default: no section
