@@ -262,8 +262,8 @@ def main() -> None:
         return
     if not args.dataset:
         ap.error("a dataset is needed (or --table FILE)")
-    if args.srgb_weight < 0 or (args.srgb_weight and args.method not in ("spikelik", "spikelik-count")):
-        ap.error("--srgb-weight must be >= 0, and is for the likelihood methods (spikelik, spikelik-count)")
+    if not args.srgb_weight >= 0 or (args.srgb_weight and args.method not in ("spikelik", "spikelik-count")):
+        sys.exit("--srgb-weight must be >= 0, and is for the likelihood methods (spikelik, spikelik-count)")
     if args.child:
         print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse,
                                args.method, args.device, args.step_ratio, args.error_rays, args.srgb_weight)))

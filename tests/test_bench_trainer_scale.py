@@ -71,3 +71,15 @@ def test_runs_with_another_srgb_weight_are_not_each_others_3x_run(capsys):
     out = capsys.readouterr().out
     assert "400 x 400 (step 0.5, sRGB weight 400): object PSNR at 27000 minus at 9000 iterations: +0.10 dB" in out
     assert scale.converged_runs(rows)[400]["iters"] == 9000
+
+
+@pytest.mark.parametrize("extra", [["--srgb-weight", "-1"], ["--srgb-weight", "nan"],
+                                   ["--method", "oracle", "--srgb-weight", "400"]])
+def test_srgb_weight_bad_input_is_one_line_before_any_run(tmp_path, monkeypatch, extra):
+    """A negative or non-number weight, or one for a method without the likelihood: one line, nothing made."""
+    monkeypatch.setattr(sys, "argv", ["bench_trainer_scale.py", str(tmp_path / "data"), "--out", str(tmp_path / "runs"),
+                                      *extra])
+    with pytest.raises(SystemExit) as e:
+        scale.main()
+    assert "--srgb-weight must be >= 0" in str(e.value) and "\n" not in str(e.value)
+    assert not (tmp_path / "runs").exists()
