@@ -48,6 +48,7 @@ from pathlib import Path
 
 from spikegen.sensor import KINDS
 from spikenerf.config import TrainConfig, default_iters
+from spikenerf.methods import METHODS as TRAINER_METHODS
 
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_400"
@@ -77,8 +78,8 @@ KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed
 DEFAULT_RAYS = TrainConfig.__dataclass_fields__["batch_rays"].default
 # each ray's display weight in the likelihood (spikenerf train --srgb-weight; 0 = off): rows without the key: 0
 DEFAULT_SRGB_WEIGHT = TrainConfig.__dataclass_fields__["srgb_weight"].default
-# the methods that take --srgb-weight (those whose loss is the counts' likelihood)
-SRGB_METHODS = ("spikelik", "spikelik-count")
+# the methods that take --srgb-weight: those whose loss is the counts' likelihood (the trainer refuses it elsewhere)
+SRGB_METHODS = tuple(name for name, m in TRAINER_METHODS.items() if m.loss == "nll")
 CAL_INTENSITY, CAL_FRAMES = 64.0, 2000  # the simulated calibration recordings: a dark and two flats
 CAL_FLATS_X = (0.25, 0.75)  # flat radiances; their "lux" is the nominal rate X * I / 256 (spikes per frame)
 

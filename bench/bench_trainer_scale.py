@@ -40,7 +40,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from bench_protocol import _commit, _gpu  # (bench/ is this script's folder: on sys.path)
+from bench_protocol import SRGB_METHODS, _commit, _gpu  # (bench/ is this script's folder: on sys.path)
 from spikenerf.config import TrainConfig, default_iters
 
 CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its iterations gain no more
@@ -262,8 +262,8 @@ def main() -> None:
         return
     if not args.dataset:
         ap.error("a dataset is needed (or --table FILE)")
-    if not args.srgb_weight >= 0 or (args.srgb_weight and args.method not in ("spikelik", "spikelik-count")):
-        sys.exit("--srgb-weight must be >= 0, and is for the likelihood methods (spikelik, spikelik-count)")
+    if not args.srgb_weight >= 0 or (args.srgb_weight and args.method not in SRGB_METHODS):
+        sys.exit(f"--srgb-weight must be >= 0, and is for the likelihood methods ({', '.join(SRGB_METHODS)})")
     if args.child:
         print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse,
                                args.method, args.device, args.step_ratio, args.error_rays, args.srgb_weight)))

@@ -41,10 +41,15 @@ PLAN = [(400, ("lego",), ("rsir", "paper", "calibrated"), INTENSITIES, PLANNED_L
         (100, SCENES, ("rsir",), (64,), PLANNED)]  # every baseline too: the default must beat each on every scene
 
 
+def _base_method(label: str) -> str:
+    """The trainer's method a table label names (``spikelik --srgb-weight 400``: ``spikelik``; see _method)."""
+    return label.split(" ")[0]
+
+
 def _order(method: str) -> tuple[int, str]:
     """A method's place in the tables (bench_protocol.TABLE_ORDER; an unknown one last): a method run with a
     trainer option off its default (``spikelik --srgb-weight 400``) right after the method itself."""
-    base = method.split(" ")[0]
+    base = _base_method(method)
     return (TABLE_ORDER.index(base) if base in TABLE_ORDER else len(TABLE_ORDER)), method
 
 
@@ -466,7 +471,7 @@ def targets(rows: list) -> list[str]:
     below, above = [], []  # where the first target is not met: the oracle's margin under 3 dB, or not
     # the default's rows with a trainer option off its default: a target line of their own, labelled so
     defaults = {**DEFAULTS, **{m: f" ({m}: not the default)" for m in sorted({r["method"] for r in rows})
-                               if m.split(" ")[0] in DEFAULTS and m not in DEFAULTS}}
+                               if _base_method(m) in DEFAULTS and m not in DEFAULTS}}
     for (res, data, sensor, budget) in sorted(cells, key=lambda c: (-c[0], c[1], c[2], c[3])):
         rs = cells[(res, data, sensor, budget)]
         for default, i in itertools.product(defaults, INTENSITIES):
@@ -513,18 +518,17 @@ def options_section(rows: list) -> list[str]:
     method at the defaults, seed for seed: per data set, sensor, size, budget, knowledge and intensity, the mean
     of the per-seed differences ± their SD (the number of seeds run both ways in brackets), object and full PSNR
     and object SSIM."""
-    base = {(r["resolution"], r["data"], r["sensor"], _budget(r), r["knowledge"], r["intensity"], r["frames"],
-             r["method"], r["seed"]): r for r in rows}
+    def cell(r, method):  # a run's cell and seed, under the method label given
+        return r["resolution"], r["data"], r["sensor"], _budget(r), r["knowledge"], r["frames"], method, r["intensity"]
+
+    base = {(cell(r, r["method"]), r["seed"]): r for r in rows}
     pairs = defaultdict(list)
     for r in rows:
-        method = r["method"].split(" ")[0]
-        if method == r["method"]:
+        if _base_method(r["method"]) == r["method"]:
             continue
-        twin = base.get((r["resolution"], r["data"], r["sensor"], _budget(r), r["knowledge"], r["intensity"],
-                         r["frames"], method, r["seed"]))
+        twin = base.get((cell(r, _base_method(r["method"])), r["seed"]))
         if twin is not None:
-            pairs[(r["resolution"], r["data"], r["sensor"], _budget(r), r["knowledge"], r["frames"], r["method"],
-                   r["intensity"])].append((r, twin))
+            pairs[cell(r, r["method"])].append((r, twin))
     if not pairs:
         return []
     out = ["| data | iters | method | knows | intensity | object PSNR | full PSNR | object SSIM |",
