@@ -46,6 +46,7 @@
 #   srgbw      spikelik with --srgb-weight 400 (docs/trainer.md "Weighting each ray as a display does") at 9000
 #              iterations of 2048 rays and 5063 of 32768, as protocol rows (bench_protocol.py --srgb-weight): the
 #              same runs' GPU rows without it score 25.83 and 27.12 dB of object PSNR
+#   srgbw32k   the srgbw stage's 32768-ray run alone
 #   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
 #              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
 #              whether its fewer steps make it faster on the GPU)
@@ -59,7 +60,7 @@ BUDGET=${3:-540}
 shift $(( $# < 3 ? $# : 3 ))
 STAGES=${*:-tests spikelik profile baselines converge}
 for st in $STAGES; do
-    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|conv32k|fill|errorrays|srgbw) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|conv32k|fill|errorrays|srgbw|srgbw32k) ;; *) echo "unknown stage $st"; exit 2 ;; esac
 done
 T0=$(date +%s)
 mkdir -p "$OUT"
@@ -142,6 +143,8 @@ for st in $STAGES; do
         srgbw) stage protocol_srgbw_9000 $P --methods spikelik --seeds 0 --srgb-weight 400
                stage protocol_srgbw_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 --batch-rays 32768 \
                    --srgb-weight 400 ;;
+        srgbw32k) stage protocol_srgbw_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 \
+                      --batch-rays 32768 --srgb-weight 400 ;;
         errorrays) if [ -d "$DATA" ]; then stage trainer_scale_errorrays python3 bench/bench_trainer_scale.py "$DATA" \
                        --device cuda --eval-views 25 --runs 400:9000:0.5:0.5,400:27000:0.5:0.5 \
                        --json "$OUT/trainer_scale_errorrays.json"
