@@ -39,7 +39,11 @@
 #              "fifth lease"
 #   conv32k    spikelik with 32768 rays a step for 45567 iterations, three times the 15189 that took 153 s on an
 #              H200 (third lease): whether 15189 are converged (0.3 dB), i.e. how far the 2-minute target
-#              is; about 460 s of training alone; a run the budget cuts resumes in a later call
+#              is; more than 588 s of training (sixth lease: two calls, 342 + 246 s, did not finish it), so
+#              more than one call; a run the budget cuts resumes in a later call on the warm machine
+#   srgbwconv  spikelik --srgb-weight 400 with 32768 rays a step for 15189 iterations, three times the 5063 that
+#              scored 28.05 dB of object PSNR in 61 s on an H200 (sixth lease): whether those 5063 are converged
+#              (0.3 dB), which would be the 2-minute target met with the option; about 150-200 s of training
 #   errorrays  spikelik at 400 x 400 with --error-rays 0.5 (docs/trainer.md "Error-guided rays") for 9000 and
 #              27000 iterations at the default 2048 rays a step (bench_trainer_scale.py --device cuda, 25 views;
 #              needs the spikelik stage's dataset): is the 9000-iteration run converged (0.3 dB), and in what time
@@ -60,7 +64,7 @@ BUDGET=${3:-540}
 shift $(( $# < 3 ? $# : 3 ))
 STAGES=${*:-tests spikelik profile baselines converge}
 for st in $STAGES; do
-    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|conv32k|fill|errorrays|srgbw|srgbw32k) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|conv32k|fill|errorrays|srgbw|srgbw32k|srgbwconv) ;; *) echo "unknown stage $st"; exit 2 ;; esac
 done
 T0=$(date +%s)
 mkdir -p "$OUT"
@@ -106,6 +110,12 @@ weights_only=False); print('stop', sys.argv[2], 'iterations', ck['iteration'], '
     done
 }
 export -f stop_ab
+reached() {  # reached RUN: how far a run got (its last checkpoint), so that a run the budget cuts still gives a speed
+    [ -f "$1/checkpoint.pt" ] || { echo "$1: no checkpoint"; return 0; }
+    python3 -c "import sys, torch; ck = torch.load(sys.argv[1] + '/checkpoint.pt', map_location='cpu', \
+weights_only=False); print(sys.argv[1] + ': checkpoint at iteration', ck['iteration'], 'after', \
+round(ck['train_seconds'], 1), 'training seconds')" "$1" | tee -a "$OUT/reached.txt"
+}
 for st in $STAGES; do
     case $st in
         tests) stage gpu_tests python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_trainer_gpu.py ;;
@@ -125,7 +135,11 @@ for st in $STAGES; do
         rays) stage protocol_rays8192_6750 $P --methods spikelik --seeds 0 --iters 6750 --batch-rays 8192 ;;
         rays3) stage protocol_rays8192_20250 $P --methods spikelik --seeds 0 --iters 20250 --batch-rays 8192 ;;
         rays32k) stage protocol_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 --batch-rays 32768 ;;
-        conv32k) stage protocol_rays32768_45567 $P --methods spikelik --seeds 0 --iters 45567 --batch-rays 32768 ;;
+        conv32k) stage protocol_rays32768_45567 $P --methods spikelik --seeds 0 --iters 45567 --batch-rays 32768
+                 reached "${RUN/9000/45567}_rays32768" ;;
+        srgbwconv) stage protocol_srgbw_rays32768_15189 $P --methods spikelik --seeds 0 --iters 15189 \
+                       --batch-rays 32768 --srgb-weight 400
+                   reached "${RUN/9000/15189}_rays32768_srgbw400" ;;
         fill) # the CPU's rows are put in front so that their runs are skipped, and taken out again after
               F=$OUT/protocol_fill.jsonl
               [ -f "$F" ] || cat bench/results/protocol.jsonl "$OUT/protocol_gpu.jsonl" > "$F"
