@@ -127,12 +127,49 @@ def test_auto_windows_follow_the_motion():
         want = min(8, max(1, math.ceil(motion / MAX_WINDOW_BLUR_PX)))
         assert count_windows(s, lik, 100, 100, 256) == want
     assert count_windows(_Stream([0.004, 0, 0]), lik, 100, 100, 256) == 1
+    # 1.31 px of motion at 100 x 100 (one window: within MAX_WINDOW_BLUR_PX, measured harmless up to 2.25 px on
+    # the procedural lego), 5.25 px at 400 x 400 (three windows of 1.75 px)
+    slide = _Stream([0.04, 0, 0])
+    assert count_windows(slide, lik, 100, 100, 256) == 1
+    assert count_windows(slide, lik, 400, 400, 256) == 3
     assert count_windows(_Stream([1.0, 0, 0]), lik, 100, 100, 256) == 8
     assert count_windows(_Stream([0.004, 0, 0]), lik, 100, 100, 256, windows=4) == 4
     assert count_windows(_Stream([0.004, 0, 0]), lik, 100, 100, 3, windows=4) == 3  # no more windows than frames
     assert count_windows(_Stream([1.0, 0, 0]), METHODS["spikenerf"], 100, 100, 256) == 1
     assert count_windows(_Stream([1.0, 0, 0]), METHODS["tfp32"], 100, 100, 256, windows=4) == 1
     assert count_windows(_Stream([0, 0, 0]), lik, 100, 100, 256, windows=4) == 1  # static: one pose
+
+
+def test_windows_help_states_the_rule():
+    from click.testing import CliRunner
+    from spikenerf.cli import main
+    from spikenerf.targets import MAX_WINDOW_BLUR_PX
+
+    out = CliRunner().invoke(main, ["train", "--help"], terminal_width=400).output
+    assert f"moves by at most {MAX_WINDOW_BLUR_PX:g} pixels" in " ".join(out.split())
+
+
+def test_auto_windows_resume_with_the_checkpoints_count(moving, tmp_path):
+    """A run resumed with --windows 0 keeps the windows it was made with (a run made under an earlier rule
+    is not refused for the rule's new count); an explicit other count is still refused."""
+    from spikegen.errors import InputError
+    from spikenerf.targets import count_windows
+
+    ds = load_dataset(moving)
+    auto = count_windows(ds, METHODS["spikelik"], SIZE, SIZE, 256)
+    made = 2 if auto != 2 else 3
+    cfg = TrainConfig(dataset=str(moving), iters=20, device="cpu", batch_rays=256, grid_start=16, grid_final=24,
+                      windows=made)
+    train(cfg, tmp_path / "run", progress=False, log=lambda m: None, stop_at=10)
+    said = []
+    ck = train(TrainConfig(**{**cfg.to_json(), "windows": 0}), tmp_path / "run", progress=False, log=said.append)
+    assert torch.load(ck, weights_only=False)["iteration"] == 20
+    assert any(f"resuming with its {made} count windows (a new run would take {auto})" in m for m in said)
+    import json
+    assert json.loads((tmp_path / "run" / "config.json").read_text())["windows"] == made
+    with pytest.raises(InputError, match=f"windows={made}"):
+        train(TrainConfig(**{**cfg.to_json(), "iters": 30, "windows": 5 - made}), tmp_path / "run", progress=False,
+              log=lambda m: None)
 
 
 def test_windows_option_sets_the_targets_and_is_kept_on_resume(moving, tmp_path):

@@ -60,7 +60,7 @@ def _fractions(ctx, param, value: str) -> tuple:
               help="Train from the first W frames of each stream (1..the dataset's frames; default all).")
 @click.option("--windows", default=TrainConfig.windows, show_default=True, type=click.IntRange(min=0),
               help="Count windows per view of a moving camera, each seen from its own pose (count methods only); "
-                   "0 = the fewest in which the image moves by at most a pixel.")
+                   "0 = the fewest in which the image moves by at most 2.5 pixels.")
 @click.option("--sensor-maps", "sensor_maps", default="", type=click.Path(path_type=str),
               help="Take R and the dark current from this sensor .json (e.g. from `spikegen calibrate`) instead of "
                    "the dataset's own (true) maps.")

@@ -44,7 +44,7 @@ class TrainConfig:
     resolution: int = 0  # 0 = the dataset's
     frames: int | None = None  # train from the first w frames of each stream; None = all (resolved when training)
     windows: int = 0  # count windows per view of a moving camera; 0 = as few as keep each window's image
-    #                   motion under a pixel (targets.count_windows; resolved when training)
+    #                   motion within targets.MAX_WINDOW_BLUR_PX (targets.count_windows; resolved when training)
     sensor_maps: str = ""  # a sensor file whose R and dark current replace the dataset's (e.g. a calibration)
     # what a count method read from each window, "count" or "interval" (targets.count_statistic): resolved
     # from the method and the dataset's sensor when training, recorded, not chosen ("" until then)

@@ -6,6 +6,7 @@ a run resumed from a checkpoint continues with exactly the rays an uninterrupted
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 import time
 from pathlib import Path
@@ -288,7 +289,12 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     asked_windows = cfg.windows
     cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame,
                               iters=cfg.iters or default_iters(H, W))
-    cfg = dataclasses.replace(cfg, windows=count_windows(ds, method, H, W, cfg.frames, cfg.windows))
+    windows = count_windows(ds, method, H, W, cfg.frames, cfg.windows)
+    kept = _checkpoint_windows(out) if asked_windows == 0 else None
+    if kept is not None and kept != windows:  # a run made under an earlier rule (targets.MAX_WINDOW_BLUR_PX)
+        log(f"{out}: resuming with its {kept} count windows (a new run would take {windows})")
+        windows = kept
+    cfg = dataclasses.replace(cfg, windows=windows)
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
     if device.type == "cuda" and cfg.batch_rays == TrainConfig.batch_rays:
@@ -364,6 +370,18 @@ def _resume(ck_path: Path, cfg: TrainConfig, legacy: tuple[int, int], device, fi
         mined.load_state_dict(ck["error_rays"])
     log(f"resuming from {ck_path} at iteration {int(ck['iteration'])}")
     return field, opt, int(ck["iteration"]), float(ck["train_seconds"]), checkpoint_space(ck)
+
+
+def _checkpoint_windows(out: Path) -> int | None:
+    """The count windows recorded with the checkpoint in ``out`` (its ``config.json``), None without one: a
+    run resumed with ``--windows 0`` keeps the count it was made with, whatever the rule now picks."""
+    if not (out / CHECKPOINT).is_file() or not (out / "config.json").is_file():
+        return None
+    try:
+        windows = json.loads((out / "config.json").read_text()).get("windows")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return int(windows) if isinstance(windows, int) and windows > 0 else None
 
 
 def _frames(ds, frames: int | None) -> int:
