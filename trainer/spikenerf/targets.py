@@ -49,9 +49,10 @@ class Targets:
 # --windows 0 (auto): the fewest count windows in which the image moves by at most this many pixels
 # (at the training resolution). More windows cost photons per ray (each window's count holds only its
 # share of the stream's spikes); fewer leave each count blurred by its window's motion. On the
-# procedural lego at 400 x 400 (2.25 px of motion a view) one window scored more than two and three at
-# intensities 16, 32 and 64 (docs/trainer.md "Count windows"), so a window's blur up to 2.5 px is
-# allowed; more motion than was measured there is split as before, into windows of at most that.
+# procedural lego at 400 x 400 (2.25 px of motion a view) one window scored more than three at
+# intensities 16, 32 and 64, and more than two at 16 and 32 (a tie at 64; docs/trainer.md "One window at
+# 400 x 400"), so a window's blur up to 2.5 px is allowed; more motion than was measured there is split,
+# as before, into windows of at most that.
 MAX_WINDOW_BLUR_PX = 2.5
 
 
