@@ -116,6 +116,10 @@ reached() {  # reached RUN: how far a run got (its last checkpoint), so that a r
 weights_only=False); print(sys.argv[1] + ': checkpoint at iteration', ck['iteration'], 'after', \
 round(ck['train_seconds'], 1), 'training seconds')" "$1" | tee -a "$OUT/reached.txt"
 }
+srgbw32k() {  # the srgbw stage's 32768-ray run (the srgbw32k stage alone)
+    stage protocol_srgbw_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 --batch-rays 32768 \
+        --srgb-weight 400
+}
 for st in $STAGES; do
     case $st in
         tests) stage gpu_tests python3 -m pytest -q -p no:cacheprovider -m gpu tests/test_trainer_gpu.py ;;
@@ -155,10 +159,8 @@ for st in $STAGES; do
         stop) if [ -d "$DATA" ]; then stage stop_ab bash -c stop_ab
               else echo "stop: no $DATA here (run the spikelik stage first)"; fi ;;
         srgbw) stage protocol_srgbw_9000 $P --methods spikelik --seeds 0 --srgb-weight 400
-               stage protocol_srgbw_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 --batch-rays 32768 \
-                   --srgb-weight 400 ;;
-        srgbw32k) stage protocol_srgbw_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 \
-                      --batch-rays 32768 --srgb-weight 400 ;;
+               srgbw32k ;;
+        srgbw32k) srgbw32k ;;
         errorrays) if [ -d "$DATA" ]; then stage trainer_scale_errorrays python3 bench/bench_trainer_scale.py "$DATA" \
                        --device cuda --eval-views 25 --runs 400:9000:0.5:0.5,400:27000:0.5:0.5 \
                        --json "$OUT/trainer_scale_errorrays.json"
