@@ -12,7 +12,8 @@ scene: ``spikegen render`` with the moving camera, its test split held out), the
 and seed ``spikenerf train`` and ``spikenerf eval``. Each finished run becomes one line of
 ``bench/results/protocol.jsonl``: what it was (data, sensor, intensity, method, what the method knows
 of the sensor, resolution, seed, iterations, frames, rays a step (rows without it: the default
-2048), the sRGB weight of ``--srgb-weight`` (rows without it: 0, off), device), what it cost (train seconds, wall
+2048), the sRGB weight of ``--srgb-weight`` (the likelihood methods' rows; rows without it: 0, off: every run
+before 2026-11-29 that did not set it), device), what it cost (train seconds, wall
 seconds, the load average) and every metric (means and per view). A run already in the file is
 skipped, so a long table is completed over several sessions; work folders live in ``--out``, and a
 run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
@@ -49,6 +50,7 @@ from pathlib import Path
 from spikegen.sensor import KINDS
 from spikenerf.config import TrainConfig, default_iters
 from spikenerf.methods import METHODS as TRAINER_METHODS
+from spikenerf.methods import default_srgb_weight
 
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_400"
@@ -76,8 +78,9 @@ KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed
        "batch_rays", "calibration_fit", "srgb_weight")
 # rays a training step (spikenerf train --batch-rays): rows without the key were made at the trainer's default
 DEFAULT_RAYS = TrainConfig.__dataclass_fields__["batch_rays"].default
-# each ray's display weight in the likelihood (spikenerf train --srgb-weight; 0 = off): rows without the key: 0
-DEFAULT_SRGB_WEIGHT = TrainConfig.__dataclass_fields__["srgb_weight"].default
+# each ray's display weight in the likelihood (spikenerf train --srgb-weight; 0 = off): rows without the key were
+# made with it off (the trainer's default until 2026-11-29; its default now: spikenerf.methods.default_srgb_weight)
+UNWEIGHTED = 0.0
 # the methods that take --srgb-weight: those whose loss is the counts' likelihood (the trainer refuses it elsewhere)
 SRGB_METHODS = tuple(name for name, m in TRAINER_METHODS.items() if m.loss == "nll")
 CAL_INTENSITY, CAL_FRAMES = 64.0, 2000  # the simulated calibration recordings: a dark and two flats
@@ -178,8 +181,8 @@ def row_key(row: dict) -> tuple:
 
 
 def srgb_weight(row: dict) -> float:
-    """The row's ``--srgb-weight`` (rows from before the key: the default, off)."""
-    return float(row.get("srgb_weight", DEFAULT_SRGB_WEIGHT))
+    """The row's ``--srgb-weight`` (rows without the key: off, UNWEIGHTED)."""
+    return float(row.get("srgb_weight", UNWEIGHTED))
 
 
 def done_keys(results: Path = RESULTS) -> set:
@@ -190,21 +193,22 @@ def done_keys(results: Path = RESULTS) -> set:
 
 def run_one(folder: Path, cell: dict, args) -> dict:
     """Train and evaluate one run; the results line."""
-    # (the folder's name: the key's values; the rays a step, the calibration's fit and the sRGB weight only
-    # where not the default, so that the folders of runs from before those keys are found again and resume)
+    # (the folder's name: the key's values; the rays a step and the calibration's fit only where not the default,
+    # the sRGB weight only where not off, so that the folders of runs from before those keys are found again and
+    # resume)
     name = "_".join(str(cell[k]) for k in KEY if k not in ("batch_rays", "calibration_fit", "srgb_weight"))
     name = name.replace(" ", "-").replace(",", "")
     rays, fit, weight = cell["batch_rays"], calibration_fit(cell), srgb_weight(cell)
     run = args.out / f"runs_{args.resolution}" / (name + ("" if rays == DEFAULT_RAYS else f"_rays{rays}")
                                                   + ("" if fit in (None, "if") else f"_{fit}fit")
-                                                  + ("" if weight == DEFAULT_SRGB_WEIGHT else f"_srgbw{weight:g}"))
+                                                  + ("" if weight == UNWEIGHTED else f"_srgbw{weight:g}"))
     cmd = ["spikenerf", "train", str(folder), "--method", cell["method"], "--out", str(run), "--device",
            args.device, "--seed", str(cell["seed"]), "--quiet", "--iters", str(cell["iterations"])]
     if cell["frames"]:
         cmd += ["--frames", str(cell["frames"])]
     if rays != DEFAULT_RAYS:
         cmd += ["--batch-rays", str(rays)]
-    if weight != DEFAULT_SRGB_WEIGHT:
+    if cell["method"] in SRGB_METHODS:  # always said: the trainer's default is not that of every row
         cmd += ["--srgb-weight", f"{weight:g}"]
     if cell["knowledge"] == "calibrated maps":
         cmd += ["--sensor-maps", str(calibration(cell["sensor"], args, fit))]
@@ -280,10 +284,14 @@ def cells(args):
                                 "knowledge": knows, "resolution": args.resolution, "seed": seed,
                                 "iterations": args.iters or default_iters(args.resolution, args.resolution),
                                 "frames": args.frames, "field": FIELD, "batch_rays": args.batch_rays,
-                                **({"srgb_weight": args.srgb_weight} if args.srgb_weight != DEFAULT_SRGB_WEIGHT
-                                   else {}),
+                                **({"srgb_weight": _weight(args, method)} if method in SRGB_METHODS else {}),
                                 **({"calibration_fit": args.calibration_kind or sensor_kind(sensor)}
                                    if knows == "calibrated maps" else {})}
+
+
+def _weight(args, method: str) -> float:
+    """The sRGB weight a likelihood method's run trains with: ``--srgb-weight``, else the trainer's default."""
+    return default_srgb_weight(method) if args.srgb_weight is None else args.srgb_weight
 
 
 def main() -> None:
@@ -300,9 +308,9 @@ def main() -> None:
     ap.add_argument("--frames", type=int, default=0, help="train from the first w frames (0 = all)")
     ap.add_argument("--batch-rays", type=int, default=DEFAULT_RAYS, help="rays a training step (spikenerf train "
                     "--batch-rays); stated in every row")
-    ap.add_argument("--srgb-weight", type=float, default=DEFAULT_SRGB_WEIGHT, help="each ray's display weight in "
-                    "the likelihood, at most this (spikenerf train --srgb-weight; the likelihood methods only; "
-                    "0 = off); stated in the rows that set it")
+    ap.add_argument("--srgb-weight", type=float, default=None, help="each ray's display weight in the likelihood, "
+                    "at most this (spikenerf train --srgb-weight; the likelihood methods only; 0 = off; default: the "
+                    "trainer's); stated in the likelihood methods' rows")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
     ap.add_argument("--calibrated-methods", default="", help="with --calibrated or --plan: only these of the "
@@ -338,13 +346,13 @@ def main() -> None:
     if args.calibrated_methods and not (args.calibrated or args.plan):
         sys.exit("--calibrated-methods needs --calibrated or --plan")
     if args.plan and (args.iters not in (0, default_iters(args.resolution, args.resolution)) or args.frames
-                      or args.batch_rays != DEFAULT_RAYS or args.srgb_weight != DEFAULT_SRGB_WEIGHT):
+                      or args.batch_rays != DEFAULT_RAYS or args.srgb_weight is not None):
         sys.exit("--plan: the plan's runs are at the default iterations, frames, rays a step and sRGB weight "
                  "(no --iters, --frames, --batch-rays or --srgb-weight)")
-    if args.srgb_weight < 0 or not math.isfinite(args.srgb_weight):
+    if args.srgb_weight is not None and (args.srgb_weight < 0 or not math.isfinite(args.srgb_weight)):
         sys.exit(f"--srgb-weight must be a number >= 0 (0 = off), got {args.srgb_weight}")
     unweighted = [m for m in args.methods if m not in SRGB_METHODS]
-    if args.srgb_weight != DEFAULT_SRGB_WEIGHT and unweighted:
+    if args.srgb_weight and unweighted:
         sys.exit(f"--srgb-weight is for the likelihood methods ({', '.join(SRGB_METHODS)}), "
                  f"not {', '.join(unweighted)}")
     mapless = [m for m in args.calibrated_methods if KNOWLEDGE[m] != "true maps" or m not in args.methods]
@@ -378,7 +386,7 @@ def _record(row: dict, args) -> None:
         row = {**row, "jobs": args.jobs}
     with args.results.open("a") as fh:
         fh.write(json.dumps(row) + "\n")
-    weight = "" if srgb_weight(row) == DEFAULT_SRGB_WEIGHT else f" --srgb-weight {srgb_weight(row):g}"
+    weight = f" --srgb-weight {srgb_weight(row):g}" if row["method"] in SRGB_METHODS else ""
     print(f"  {row['data']} {row['sensor']} i{row['intensity']} {row['method']}{weight} seed {row['seed']}: PSNR "
           f"{row['metrics']['psnr']:.2f} / object {row['metrics']['psnr_object']:.2f}, train "
           f"{row['train_seconds']:.0f} s", flush=True)

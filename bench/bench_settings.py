@@ -8,7 +8,8 @@ Trains ``spikenerf train DATASET --iters N --out <work>/NAME [TRAIN OPTIONS]``, 
 dataset's held-out views (``spikenerf eval``) and appends one line to
 ``bench/results/settings.jsonl``: the name, the options, the dataset, iterations, training and
 evaluation seconds, the load average before and after, the code version (the short commit,
-``+changes`` when tracked files differ from it)
+``+changes`` when tracked files differ from it), the sRGB weight the run trained with (its ``config.json``; rows
+from before 2026-11-29 lack it: those that do not set ``--srgb-weight`` trained without it, the default then)
 and the metrics (full image, object alpha > 0 and > 0.5, background; PSNR and SSIM). The dataset
 is meant to be one of the project's own procedural scenes (``spikegen render``, moving camera), so
 that no setting is chosen on the real lego's views (bench/PROTOCOL.md). Speed figures are only
@@ -41,10 +42,21 @@ def run(dataset: Path, name: str, iters: int, options: list[str], work: Path) ->
     subprocess.run(["spikenerf", "eval", str(out), "--quiet"], check=True, stdout=subprocess.DEVNULL)
     t2 = time.perf_counter()
     m = json.loads((out / "metrics.json").read_text())
+    cfg = json.loads((out / "config.json").read_text())
     return {"name": name, "options": options, "dataset": str(dataset), "iterations": iters,
             "train_s": round(t1 - t0, 1), "eval_s": round(t2 - t1, 1), "views": m["views"],
             "load": [round(load0, 2), round(os.getloadavg()[0], 2)], "version": _commit(),
-            "metrics": {k: m[k] for k in METRICS}}
+            "srgb_weight": cfg.get("srgb_weight"), "metrics": {k: m[k] for k in METRICS}}
+
+
+def _options(r: dict) -> str:
+    """A row's options as the table shows them, with the sRGB weight it trained with where the options do not
+    set it and it was not off (the trainer's default since 2026-11-29)."""
+    text = f"`{' '.join(r['options']) or '(defaults)'}`"
+    w = r.get("srgb_weight")
+    if w and "--srgb-weight" not in r["options"]:
+        text += f" (sRGB weight {w:g}, the default)"
+    return text
 
 
 def _load(pair) -> str:
@@ -57,7 +69,7 @@ def table(rows: list[dict]) -> str:
     for r in rows:
         m = r["metrics"]
         eval_s = "?" if r["eval_s"] is None else f"{r['eval_s']:.0f}"  # rows run by hand: not timed
-        out.append(f"| {r['name']} | `{' '.join(r['options']) or '(defaults)'}` | {r['iterations']} | {r['train_s']:.0f} "
+        out.append(f"| {r['name']} | {_options(r)} | {r['iterations']} | {r['train_s']:.0f} "
                    f"| {eval_s} | {_load(r['load'])} | {m['psnr']:.2f} | "
                    f"{m['psnr_object']:.2f} | {m['psnr_object50']:.2f} | {m['psnr_background']:.2f} | {m['ssim']:.3f} "
                    f"| {m['ssim_object']:.3f} |")

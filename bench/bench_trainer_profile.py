@@ -143,9 +143,9 @@ def main() -> None:
     saved = json.loads((args.run / "config.json").read_text())
     keys = {f.name for f in dataclasses.fields(TrainConfig)}
     # the settings the checkpoint was trained with win over config.json's; a run from before early ray
-    # termination trained without it (the trainer's own reading of such a checkpoint)
+    # termination or the sRGB weight trained without them (the trainer's own reading of such a checkpoint)
     ck = _checkpoint(args.run)
-    made = {"stop_transmittance": 0.0, **ck["config"]}
+    made = {"stop_transmittance": 0.0, "srgb_weight": 0.0, **ck["config"]}
     cfg = TrainConfig(**{k: v for k, v in {**saved, **made}.items() if k in keys})
     cfg = dataclasses.replace(cfg, device=args.device, checkpoint_every_s=1e9, checkpoint_every=10 ** 9)
     done = int(ck["iteration"])

@@ -23,7 +23,8 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--runs 100:9000,400:27000:1,400:81000:1]   # a third field: that run's --step-ratio (default: the trainer's, 0.5)
         [--runs 100:9000,400:9000:0.5:0.5]   # a fourth: its --error-rays (default: the trainer's, 0)
         [--method oracle]   # another method (default spikelik)
-        [--srgb-weight 400]   # every run with the trainer's --srgb-weight (default: the trainer's, 0: off)
+        [--srgb-weight 0]   # every run with this --srgb-weight (default: the trainer's for the method, 400 for
+                            # the likelihood methods; 0: off)
         [--json FILE]  # the rows and the load averages, for the record
         [--device cuda]  # train and evaluate on the GPU (its name and peak GPU memory join the rows)
     python bench/bench_trainer_scale.py --table FILE   # the table of a saved --json file again
@@ -42,13 +43,14 @@ from pathlib import Path
 
 from bench_protocol import SRGB_METHODS, _commit, _gpu  # (bench/ is this script's folder: on sys.path)
 from spikenerf.config import TrainConfig, default_iters
+from spikenerf.methods import METHODS, default_srgb_weight
 
 CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its iterations gain no more
 
 
 def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int | None, sparse: bool,
           method: str = "spikelik", device: str = "cpu", step_ratio: float = TrainConfig.step_ratio,
-          error_rays: float = TrainConfig.error_rays, srgb_weight: float = TrainConfig.srgb_weight) -> dict:
+          error_rays: float = TrainConfig.error_rays, srgb_weight: float | None = None) -> dict:
     """Train and evaluate one run in this process; the figures as a dict."""
     from spikenerf.eval import evaluate
     from spikenerf.train import train
@@ -244,8 +246,9 @@ def main() -> None:
                     help=argparse.SUPPRESS)  # the child's; --runs sets it
     ap.add_argument("--error-rays", type=float, default=TrainConfig.error_rays,
                     help=argparse.SUPPRESS)  # the child's; --runs sets it
-    ap.add_argument("--srgb-weight", type=float, default=TrainConfig.srgb_weight, help="every run with the "
-                    "trainer's --srgb-weight (each ray's display weight in the likelihood, at most this; 0 = off)")
+    ap.add_argument("--srgb-weight", type=float, default=None, help="every run with the trainer's --srgb-weight "
+                    "(each ray's display weight in the likelihood, at most this; 0 = off; default: the trainer's for "
+                    "the method)")
     args = ap.parse_args()
     if args.table:
         files = [json.loads(f.read_text()) for f in args.table]
@@ -262,6 +265,10 @@ def main() -> None:
         return
     if not args.dataset:
         ap.error("a dataset is needed (or --table FILE)")
+    if args.method not in METHODS:
+        sys.exit(f"unknown --method {args.method!r}; expected one of {', '.join(METHODS)}")
+    if args.srgb_weight is None:  # the trainer's default, said in every row and in the folders' names
+        args.srgb_weight = default_srgb_weight(args.method)
     if not args.srgb_weight >= 0 or (args.srgb_weight and args.method not in SRGB_METHODS):
         sys.exit(f"--srgb-weight must be >= 0, and is for the likelihood methods ({', '.join(SRGB_METHODS)})")
     if args.child:

@@ -7,6 +7,9 @@
 # LEGO: the NeRF-synthetic lego at 400 x 400 (../shared/data/nerf_synthetic_lego_400); OUT: where
 # logs and results go; SECONDS: a budget after which no stage starts and a running one is stopped
 # (default 540). STAGEs, in the order given (default: tests spikelik profile baselines converge):
+# Since 2026-11-29 spikelik trains with --srgb-weight 400 by default: every spikelik run below has it, its rows
+# and folders say so (the GPU rows of earlier leases were made without it: `spikelik --srgb-weight 0` in
+# bench/PROTOCOL.md), and the srgbw stages are the same runs as the spikelik and rays32k stages.
 #   tests      pytest -m gpu tests/test_trainer_gpu.py
 #   spikelik   the protocol's spikelik run, rsir i32 400 x 400, seed 0, default 9000 iterations
 #   profile    bench_trainer_profile.py on a run trained here (where a step's time goes): the spikelik
@@ -37,10 +40,10 @@
 #              machine, made at once with the first's OUT/protocol_gpu.jsonl copied to
 #              bench/results/protocol_gpu.jsonl (so the finished runs are skipped): docs/trainer.md
 #              "fifth lease"
-#   conv32k    spikelik with 32768 rays a step for 45567 iterations, three times the 15189 that took 153 s on an
-#              H200 (third lease): whether 15189 are converged (0.3 dB), i.e. how far the 2-minute target
-#              is; more than 588 s of training (sixth lease: two calls, 342 + 246 s, did not finish it), so
-#              more than one call; a run the budget cuts resumes in a later call on the warm machine
+#   conv32k    spikelik with 32768 rays a step for 45567 iterations, three times the srgbwconv stage's 15189:
+#              whether 15189 are converged (0.3 dB); more than 588 s of training (sixth lease, without the
+#              weight: two calls, 342 + 246 s, did not finish it), so more than one call; a run the budget
+#              cuts resumes in a later call on the warm machine
 #   srgbwconv  spikelik --srgb-weight 400 with 32768 rays a step for 15189 iterations, three times the 5063 that
 #              scored 28.05 dB of object PSNR in 61 s on an H200 (sixth lease): whether those 5063 are converged
 #              (0.3 dB), which would be the 2-minute target met with the option; about 150-200 s of training
@@ -48,8 +51,8 @@
 #              27000 iterations at the default 2048 rays a step (bench_trainer_scale.py --device cuda, 25 views;
 #              needs the spikelik stage's dataset): is the 9000-iteration run converged (0.3 dB), and in what time
 #   srgbw      spikelik with --srgb-weight 400 (docs/trainer.md "Weighting each ray as a display does") at 9000
-#              iterations of 2048 rays and 5063 of 32768, as protocol rows (bench_protocol.py --srgb-weight): the
-#              same runs' GPU rows without it score 25.83 and 27.12 dB of object PSNR
+#              iterations of 2048 rays and 5063 of 32768, as protocol rows: the same runs' GPU rows without it
+#              score 25.83 and 27.12 dB of object PSNR
 #   srgbw32k   the srgbw stage's 32768-ray run alone
 #   rays32k    spikelik with 32768 rays a step for 5063 iterations (the rays of 81000 at 2048; on the
 #              procedural lego 0.25 dB below 8192 rays at the same rays, docs/trainer.md "Rays a step":
@@ -99,6 +102,7 @@ torch.__version__, 'cuda', torch.version.cuda)"
 P="python3 bench/bench_protocol.py --resolution 400 --sensors rsir --intensities 32 --device cuda --workers $(nproc)
    --results $OUT/protocol_gpu.jsonl --out bench_out/protocol"
 RUN=bench_out/protocol/runs_400/lego_rsir_32_spikelik_true-maps_400_0_9000_0_grid-fitted-box
+W=_srgbw400  # a run folder's last part: spikelik's sRGB weight (bench_protocol.run_one), after the rays'
 export DATA=bench_out/protocol/data_lego_rsir_400/nerf_synthetic_lego_400_i32
 stop_ab() {  # the same 3000-iteration run with the default threshold and without (needs DATA: spikelik first)
     for s in default 0; do
@@ -126,7 +130,7 @@ for st in $STAGES; do
         spikelik) stage protocol_9000 $P --methods spikelik --seeds 0 ;;
         profile) PR=""  # the first trained run here: the protocol's 9000 iterations, the 8192-ray one, the
                  # 32768-ray one, the stop pair's
-                 for r in "$RUN" "${RUN/9000/6750}_rays8192" "${RUN/9000/5063}_rays32768" bench_out/stop_ab_default; do
+                 for r in "$RUN$W" "${RUN/9000/6750}_rays8192$W" "${RUN/9000/5063}_rays32768$W" bench_out/stop_ab_default; do
                      [ -f "$r/checkpoint.pt" ] && { PR=$r; break; }
                  done
                  if [ -n "$PR" ]; then
@@ -140,10 +144,10 @@ for st in $STAGES; do
         rays3) stage protocol_rays8192_20250 $P --methods spikelik --seeds 0 --iters 20250 --batch-rays 8192 ;;
         rays32k) stage protocol_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 --batch-rays 32768 ;;
         conv32k) stage protocol_rays32768_45567 $P --methods spikelik --seeds 0 --iters 45567 --batch-rays 32768
-                 reached "${RUN/9000/45567}_rays32768" ;;
+                 reached "${RUN/9000/45567}_rays32768$W" ;;
         srgbwconv) stage protocol_srgbw_rays32768_15189 $P --methods spikelik --seeds 0 --iters 15189 \
                        --batch-rays 32768 --srgb-weight 400
-                   reached "${RUN/9000/15189}_rays32768_srgbw400" ;;
+                   reached "${RUN/9000/15189}_rays32768$W" ;;
         fill) # the CPU's rows are put in front so that their runs are skipped, and taken out again after
               F=$OUT/protocol_fill.jsonl
               [ -f "$F" ] || cat bench/results/protocol.jsonl "$OUT/protocol_gpu.jsonl" > "$F"

@@ -18,10 +18,11 @@ PORT_BIAS = HERE / "results" / "port_bias.jsonl"  # bench/bench_port_bias.py: th
 OUT = HERE / "PROTOCOL.md"
 INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
-from bench_protocol import (DEFAULT_RAYS, DEFAULT_SRGB_WEIGHT, FIELD, KEY, KNOWLEDGE,  # noqa: E402 (the runner's names)
+from bench_protocol import (DEFAULT_RAYS, FIELD, KEY, KNOWLEDGE,  # noqa: E402 (the runner's names)
                             METHODS, OLD_FIELD, TABLE_ORDER, calibration_fit, row_key, sensor_kind, sensor_model,
                             sensor_name, srgb_weight)
 from spikenerf.config import default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
+from spikenerf.methods import default_srgb_weight  # noqa: E402 (no torch either)
 
 # Calibrated maps fitted with another response than the camera's own (Eqs. S2-S6 on the rsir camera, the rows
 # made before the rsir fit): their own row, outside the plan and the third target.
@@ -42,13 +43,13 @@ PLAN = [(400, ("lego",), ("rsir", "paper", "calibrated"), INTENSITIES, PLANNED_L
 
 
 def _base_method(label: str) -> str:
-    """The trainer's method a table label names (``spikelik --srgb-weight 400``: ``spikelik``; see _method)."""
+    """The trainer's method a table label names (``spikelik --srgb-weight 0``: ``spikelik``; see _method)."""
     return label.split(" ")[0]
 
 
 def _order(method: str) -> tuple[int, str]:
     """A method's place in the tables (bench_protocol.TABLE_ORDER; an unknown one last): a method run with a
-    trainer option off its default (``spikelik --srgb-weight 400``) right after the method itself."""
+    trainer option off its default (``spikelik --srgb-weight 0``) right after the method itself."""
     base = _base_method(method)
     return (TABLE_ORDER.index(base) if base in TABLE_ORDER else len(TABLE_ORDER)), method
 
@@ -71,12 +72,14 @@ setting is chosen in this benchmark: every method runs with the trainer's defaul
 iteration count, which every row states. The trainer's default count follows the image size (3000
 at 100 x 100, 9000 at 400 x 400, chosen on the project's procedural lego: docs/trainer.md). @@ITERS
 The other defaults were chosen by earlier sessions, partly by scores on every 8th lego *train*
-view; the val views here were never used for any decision. A row whose method reads `spikelik
---srgb-weight 400` is the default with one trainer option that is not the default (each ray's likelihood
-weighted as a display weights its error: docs/trainer.md "Weighting each ray as a display does"); it was
-chosen on the procedural lego, before any of these runs, and stands in its own row beside the default's. At 400 x 400 the default 9000 iterations
-are not converged on the real lego: spikelik (rsir i64, first 25 val views) scores 25.83 dB of object
-PSNR at 9000 and 27.11 at 27000 iterations (bench/results/trainer_scale_20261125.json; docs/trainer.md),
+view; the val views here were never used for any decision. Since 2026-11-29 the likelihood methods weight
+each ray's error as a display weights it (`--srgb-weight 400`, their default: docs/trainer.md "Weighting each
+ray as a display does" and "`--srgb-weight 400` becomes the default"; chosen on the procedural lego, before any
+of these runs had it). A row whose method reads `spikelik --srgb-weight 0` (or `spikelik-count --srgb-weight 0`)
+was made with the weight off, the default before that date: it stands in its own row beside the default's, never
+averaged with it, and fills no planned slot. At 400 x 400 the default 9000 iterations
+are not converged on the real lego: spikelik without the weight (rsir i64, first 25 val views) scores 25.83 dB
+of object PSNR at 9000 and 27.11 at 27000 iterations (bench/results/trainer_scale_20261125.json; docs/trainer.md),
 so every 400 x 400 row here compares methods at the same, unconverged budget. The oracle (ground-truth
 images) gains the same from 9000 to 27000 iterations there (26.66 to 27.94;
 bench/results/trainer_scale_oracle_20261126.json): the budget holds back the field, spike-fed or not.
@@ -122,11 +125,12 @@ def load(path: Path = RESULTS) -> list:
 
 
 def _method(r: dict) -> str:
-    """The row's method as the tables name it: with ``--srgb-weight W`` where the run set it off its default
-    (such a run is another method line, never averaged with the method's default runs, and fills no planned
-    slot)."""
+    """The row's method as the tables name it: with ``--srgb-weight W`` where the run's weight is not the
+    trainer's default for the method now (spikenerf.methods.default_srgb_weight: since 2026-11-29 400 for the
+    likelihood methods, whose rows from before then were made with it off and read ``--srgb-weight 0``). Such a
+    run is another method line, never averaged with the method's default runs, and fills no planned slot."""
     w = srgb_weight(r)
-    return r["method"] if w == DEFAULT_SRGB_WEIGHT else f"{r['method']} --srgb-weight {w:g}"
+    return r["method"] if w == default_srgb_weight(r["method"]) else f"{r['method']} --srgb-weight {w:g}"
 
 
 def _knowledge(r: dict) -> str:
@@ -343,21 +347,24 @@ def sequence_table(rows: list) -> list[str]:
         if not ws:
             continue
         res, data, sensor, i, budget = key
-        methods = sorted({r["method"] for r in rs if r["frames"] and r["knowledge"] == KNOWLEDGE.get(r["method"])},
+        methods = sorted({r["method"] for r in rs
+                          if r["frames"] and r["knowledge"] == KNOWLEDGE.get(_base_method(r["method"]))},
                          key=_order)
         cols = ws + [0]
 
         def obj(m, w):
-            return _values(rs, m, KNOWLEDGE.get(m), i, frames=w)
+            return _values(rs, m, KNOWLEDGE.get(_base_method(m)), i, frames=w)
 
         out += [f"### {data}, {sensor}, {res} x {res}, i{i}, {_iters(budget)} iterations", "",
                 "| object PSNR | knows | " + " | ".join(f"w = {w or 256}" for w in cols) + " |",
                 "|---|---|" + "---|" * len(cols)]
         for m in methods:
-            out.append(f"| {m} | {KNOWLEDGE.get(m)} | " + " | ".join(_stat(obj(m, w)) for w in cols) + " |")
-        if {"spikelik", "spikenerf-paper"} <= set(methods):
-            pairs = [(obj("spikelik", w), obj("spikenerf-paper", w)) for w in cols]
-            out.append("| default − port | | " + " | ".join(f"{np.mean(a) - np.mean(b):+.2f}" if a and b else "–"
+            out.append(f"| {m} | {KNOWLEDGE.get(_base_method(m))} | " + " | ".join(_stat(obj(m, w)) for w in cols)
+                       + " |")
+        for d in (d for d in DEFAULTS if d in methods and "spikenerf-paper" in methods):
+            pairs = [(obj(d, w), obj("spikenerf-paper", w)) for w in cols]
+            name = "default" if d == "spikelik" else d
+            out.append(f"| {name} − port | | " + " | ".join(f"{np.mean(a) - np.mean(b):+.2f}" if a and b else "–"
                                                           for a, b in pairs) + " |")
         out.append("")
     return out
@@ -402,9 +409,14 @@ def measured(rows: list) -> list[str]:
 
 
 BASELINES = ("spikenerf", "spikenerf-noR", "tfp32", "tfp256", "tfi")
-# The default, and the default before 2026-11-28 (spikelik reading the counts alone; its rows on the
-# integrate-and-fire sensors were made as "spikelik" and relabelled), each with its label in the targets
-DEFAULTS = {"spikelik": "", "spikelik-count": " (spikelik-count: the default before 2026-11-28)"}
+# The default, and the defaults before it, each with its label in the targets: before 2026-11-29 spikelik without
+# the sRGB weight; before 2026-11-28 spikelik reading the counts alone, without it (its rows on the integrate-and-
+# fire sensors were made as "spikelik" and relabelled)
+DEFAULTS = {"spikelik": "", "spikelik --srgb-weight 0": " (the default before 2026-11-29)",
+            "spikelik-count --srgb-weight 0": " (spikelik-count without the weight: the default before 2026-11-28)"}
+# the same in bench/results/port_bias.jsonl, whose runs (all made before 2026-11-29, the weight off) say the
+# trainer's method alone
+PORT_BIAS_DEFAULTS = ("spikelik", "spikelik-count")
 
 
 def _values(rows: list, method: str, knowledge: str, intensity: int, key: str = "psnr_object",
@@ -514,7 +526,7 @@ def targets(rows: list) -> list[str]:
 
 
 def options_section(rows: list) -> list[str]:
-    """Each method run with a trainer option off its default (``spikelik --srgb-weight 400``) against the same
+    """Each method run with a trainer option off its default (``spikelik --srgb-weight 0``) against the same
     method at the defaults, seed for seed: per data set, sensor, size, budget, knowledge and intensity, the mean
     of the per-seed differences ± their SD (the number of seeds run both ways in brackets), object and full PSNR
     and object SSIM."""
@@ -587,8 +599,9 @@ def port_bias_section(rows: list) -> list[str]:
                 "`calibrated`, the `rsir` generator's for `rsir`; no parameter fitted); and times one gain per run "
                 "fitted on the reported "
                 "views themselves (an oracle: a diagnostic of how much of the error is a brightness scale, never "
-                "a setting; gain mean). The default is the control (on `paper` and `calibrated` these runs are "
-                "`spikelik-count`, the default before 2026-11-28, which reads the counts alone): it models the "
+                "a setting; gain mean). The default is the control (these runs were made before 2026-11-29, with the "
+                "sRGB weight off; on `paper` and `calibrated` they are `spikelik-count`, the default before "
+                "2026-11-28, which reads the counts alone): it models the "
                 "subtractive reset, so undoing a loss it does not have makes it worse. On `rsir` data the loop and the "
                 "data's pixel lose about alike (last column of the rate table), so there the port's bias and what "
                 "undoing it gives back should be small: a counter-check.", "",
@@ -619,7 +632,7 @@ def error_by_count(cells: dict) -> list[str]:
     pairs = []
     for sensor, i in keys:
         port = [r for r in cells.get((sensor, i, "spikenerf-paper"), []) if "by_expected_count" in r]
-        for method in DEFAULTS:  # the current default's runs, else the earlier default's
+        for method in PORT_BIAS_DEFAULTS:  # the later default's runs, else the earlier default's
             default = [r for r in cells.get((sensor, i, method), []) if "by_expected_count" in r]
             if default:
                 break
@@ -721,11 +734,13 @@ def main() -> None:
                   "trains the same field, to the bit, from datasets at two intensities and from three sensors' "
                   "(tests/test_trainer_cli.py, test_oracle_does_not_depend_on_the_intensity_or_the_sensor). On the `paper` and `calibrated` sensors (static views from an "
                   "integrate-and-fire sensor without shot noise, or with little) `spikenerf` supervises with the "
-                  "same statistic as `spikelik-count`, the default before 2026-11-28, so those two tie by "
+                  "same statistic as `spikelik-count` without the sRGB weight, the default before 2026-11-28, so "
+                  "those two tie by "
                   "construction (docs/trainer.md, \"Methods\"); the default since reads each view's count from its "
-                  "first and last spike times there (docs/trainer.md, \"Spike times\"). Rows of `spikelik-count` "
-                  "are that earlier default's, labelled as such; on the `rsir` sensor, whose spike times carry no "
-                  "such bound, `spikelik` reads the counts as it did, and its rows are the same runs.", ""]
+                  "first and last spike times there (docs/trainer.md, \"Spike times\"). Rows of "
+                  "`spikelik-count --srgb-weight 0` are that earlier default's, labelled as such; on the `rsir` "
+                  "sensor, whose spike times carry no such bound, `spikelik` reads the counts as it did, and its "
+                  "rows from before 2026-11-28 are the same runs.", ""]
     lines += options_section(rows)
     if PORT_BIAS.is_file():
         lines += port_bias_section([json.loads(x) for x in PORT_BIAS.read_text().splitlines() if x.strip()])

@@ -105,6 +105,20 @@ def test_sequence_table_sets_the_first_w_frames_beside_all_256():
     assert make_protocol.sequence_table([_row("spikelik", "true maps", 26.0)]) == []
 
 
+def test_sequence_table_names_the_earlier_default_by_its_label():
+    """Runs made before the sRGB weight became the default (rows without it, labelled ``spikelik --srgb-weight
+    0`` by load) stand in the sequence table with the method's own knowledge, and their margin over the port
+    is said under their label, apart from the default's."""
+    rows = [dict(_row("spikelik --srgb-weight 0", "true maps", 24.0), frames=32),
+            _row("spikelik --srgb-weight 0", "true maps", 26.0),
+            dict(_row("spikenerf-paper", "true maps", 23.0), frames=32), _row("spikenerf-paper", "true maps", 25.5),
+            _row("spikelik", "true maps", 26.6)]  # the default, from all frames only
+    table = make_protocol.sequence_table(rows)
+    assert "| spikelik --srgb-weight 0 | true maps | 24.00 (1) | 26.00 (1) |" in table
+    assert "| spikelik --srgb-weight 0 − port | | +1.00 | +0.50 |" in table
+    assert not any(line.startswith("| default − port") for line in table)  # no default run from fewer frames
+
+
 def test_a_margin_over_the_best_baseline_inside_the_seeds_noise_is_a_tie():
     rows = [_row("spikelik", "true maps", 25.0 + 0.1 * s, seed=s) for s in range(3)]       # 25.1, SD 0.1
     rows += [_row("spikenerf", "true maps", 25.05 + 0.1 * s, seed=s) for s in range(3)]     # 25.15, SD 0.1
@@ -368,7 +382,7 @@ def test_plan_asks_for_the_runs_still_missing_counts():
                                      "methods": list(bench_protocol.METHODS), "seeds": [0, 1, 2], "calibrated": False,
                                      "calibrated_methods": [], "resolution": res, "iters": 0, "frames": 0,
                                      "batch_rays": 2048, "calibration_kind": None, "plan": True,
-                                     "srgb_weight": 0.0, **kw})
+                                     "srgb_weight": None, **kw})
         return [(c["sensor"], c["intensity"], c["method"], c["knowledge"], c["seed"])
                 for *_, c in bench_protocol.cells(args)]
 
@@ -496,7 +510,7 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
     # the runner asks for the camera's own fit, and --calibration-kind overrides it
     args = argparse.Namespace(data=["lego"], sensors=["rsir", "paper"], intensities=[64], methods=["spikelik"],
                               seeds=[0], calibrated=True, calibrated_methods=[], resolution=100, iters=0, frames=0,
-                              batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=0.0)
+                              batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None)
     fits = {(c["sensor"], c.get("calibration_fit")) for *_, c in bench_protocol.cells(args)}
     assert fits == {("rsir", None), ("rsir", "rsir"), ("paper", None), ("paper", "if")}
     args.calibration_kind = "if"
@@ -525,18 +539,21 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
 
 
 def test_runs_with_an_srgb_weight_are_other_runs(tmp_path, monkeypatch):
-    """``--srgb-weight W``: the runner trains with it, in a folder of its own, and its rows record it (rows
-    without the key: 0, off); such a row is its own key, fills no planned slot, and stands in the tables as its
-    own method line (``spikelik --srgb-weight W``, right after spikelik) with its own target line."""
+    """The sRGB weight (``--srgb-weight``): a likelihood method's run takes the trainer's default (400 since
+    2026-11-29) unless the call sets one, the runner always says it to the trainer, and its rows record it (rows
+    without the key: 0, off, the default before). A run with the weight off keeps the folder name of the runs from
+    before the key (so those resume), is its own key, fills no planned slot, and stands in the tables as its own
+    method line (``spikelik --srgb-weight 0``, right after spikelik) with its own target line; the weighted run
+    is the default's line and fills the slot."""
     import argparse
 
     import bench_protocol
-    args = argparse.Namespace(data=["lego"], sensors=["rsir"], intensities=[64], methods=["spikelik"], seeds=[0],
-                              calibrated=False, calibrated_methods=[], resolution=400, iters=0, frames=0,
-                              batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=400.0,
+    args = argparse.Namespace(data=["lego"], sensors=["rsir"], intensities=[64], methods=["spikelik", "tfp32"],
+                              seeds=[0], calibrated=False, calibrated_methods=[], resolution=400, iters=0, frames=0,
+                              batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None,
                               out=tmp_path, device="cpu")
-    cell = next(bench_protocol.cells(args))[-1]
-    assert cell["srgb_weight"] == 400.0
+    cell, tfp = (c for *_, c in bench_protocol.cells(args))
+    assert cell["srgb_weight"] == 400.0 and "srgb_weight" not in tfp
     calls = []
 
     def fake_run(cmd):  # what spikenerf train and eval would leave in the run folder
@@ -553,12 +570,17 @@ def test_runs_with_an_srgb_weight_are_other_runs(tmp_path, monkeypatch):
     train = calls[0]
     assert train[train.index("--srgb-weight") + 1] == "400" and train[train.index("--out") + 1].endswith("_srgbw400")
     assert row["srgb_weight"] == 400.0
+    calls.clear()
+    bench_protocol.run_one(tmp_path / "data", tfp, args)
+    assert "--srgb-weight" not in calls[0]  # (the trainer refuses it for a method without the likelihood)
     args.srgb_weight = 0.0
     plain = next(bench_protocol.cells(args))[-1]
-    assert "srgb_weight" not in plain
+    assert plain["srgb_weight"] == 0.0
     calls.clear()
     bench_protocol.run_one(tmp_path / "data", plain, args)
-    assert "--srgb-weight" not in calls[0] and calls[0][calls[0].index("--out") + 1].endswith("_9000_0_grid-fitted-box")
+    train = calls[0]
+    assert train[train.index("--srgb-weight") + 1] == "0"  # said: the trainer's own default is 400
+    assert train[train.index("--out") + 1].endswith("_9000_0_grid-fitted-box")
 
     base = {**_row("spikelik", "true maps", 25.0, iterations=9000), "field": bench_protocol.FIELD}
     weighted = {**base, "srgb_weight": 400.0, "metrics": {"psnr_object": 25.6}}
@@ -567,19 +589,21 @@ def test_runs_with_an_srgb_weight_are_other_runs(tmp_path, monkeypatch):
     path = tmp_path / "rows.jsonl"
     path.write_text("".join(json.dumps(r) + "\n" for r in (base, weighted)))
     rows = make_protocol.load(path)
-    assert [r["method"] for r in rows] == ["spikelik", "spikelik --srgb-weight 400"]
+    assert [r["method"] for r in rows] == ["spikelik --srgb-weight 0", "spikelik"]
     lines = make_protocol.table(rows + [{**base, "method": "spikenerf-paper"}], "psnr_object", "method")
     names = [x.split("|")[1].strip() for x in lines[2:]]
-    assert names == ["spikelik", "spikelik --srgb-weight 400", "spikenerf-paper"]
-    assert "25.60 (1)" in lines[3] and "25.00 (1)" in lines[2]
+    assert names == ["spikelik", "spikelik --srgb-weight 0", "spikenerf-paper"]
+    assert "25.60 (1)" in lines[2] and "25.00 (1)" in lines[3]
     targets = make_protocol.targets(rows + [{**base, "method": "spikenerf-paper", "metrics": {"psnr_object": 24.0}}])
-    weighted_line = next(x for x in targets if "spikelik --srgb-weight 400: not the default" in x)
-    assert "| +1.60 (not met; 1 of 3 seeds) |" in weighted_line
+    earlier = next(x for x in targets if "(the default before 2026-11-29)" in x)
+    assert "| +1.00 (not met; 1 of 3 seeds) |" in earlier
+    default = next(x for x in targets if "| lego, rsir, 400 x 400, 9000 it |" in x)
+    assert "| +1.60 (not met; 1 of 3 seeds) |" in default
 
     def left(rs):
         line = next(x for x in make_protocol.missing(rs) if "lego, rsir, 400 x 400" in x)
         return int(line.split(": ")[1].split(" of ")[0])
-    assert left(rows[1:]) == left([]) == left(rows[:1]) + 1
+    assert left(rows[:1]) == left([]) == left(rows[1:]) + 1
 
 
 def test_options_section_pairs_each_run_with_the_default_run_of_its_seed():

@@ -287,8 +287,7 @@ def test_learning_rate_factor_decays_to_the_fraction_asked():
                                                      ("--step-ratio", "1", "step_ratio", ("0", "3")),
                                                      ("--adam-eps", "1e-12", "adam_eps", ("0", "-1")),
                                                      ("--error-rays", "0.5", "error_rays", ("-0.1", "1")),
-                                                     ("--coarse-to-fine", "0.5", "coarse_to_fine", ("-0.1", "1")),
-                                                     ("--srgb-weight", "400", "srgb_weight", ("-1",))])
+                                                     ("--coarse-to-fine", "0.5", "coarse_to_fine", ("-0.1", "1"))])
 def test_run_options_from_the_command_line_and_resume_guard(dataset, tmp_path, option, value, key, bad):
     run = tmp_path / "lr"
     args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
@@ -323,6 +322,42 @@ def test_srgb_weight_is_for_the_likelihood_methods(dataset, tmp_path):
                                     "--srgb-weight", "10"])
     assert res.exit_code == 2 and "--srgb-weight" in res.output and "Traceback" not in res.output
     assert not (tmp_path / "bad").exists()
+
+
+def test_srgb_weight_defaults_to_400_for_the_likelihood_and_a_resume_keeps_its_own(dataset, tmp_path):
+    """Not given, ``--srgb-weight`` is 400 for the likelihood methods and off for the others (config.json
+    records the weight used); a run resumed without it keeps its own, a run from before the key (made with it
+    off, the default then) included, and says so in one line; another weight on resume is refused in one line;
+    a negative one before anything is made."""
+    def args(run, *more):
+        return ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", *more]
+
+    def weight(run):
+        return json.loads((run / "config.json").read_text())["srgb_weight"]
+
+    for method, want in (("spikelik", 400.0), ("spikelik-count", 400.0), ("tfp32", 0.0), ("oracle", 0.0)):
+        res = CliRunner().invoke(main, args(tmp_path / method, "--iters", "3", "--quiet", "--method", method))
+        assert res.exit_code == 0, res.output
+        assert weight(tmp_path / method) == want
+    old = tmp_path / "old"
+    res = CliRunner().invoke(main, args(old, "--iters", "3", "--quiet", "--srgb-weight", "0"))
+    assert res.exit_code == 0 and weight(old) == 0.0
+    made = json.loads((old / "config.json").read_text())  # as a run from before the key left it
+    del made["srgb_weight"]
+    (old / "config.json").write_text(json.dumps(made))
+    ck = torch.load(old / "checkpoint.pt", weights_only=False)
+    del ck["config"]["srgb_weight"]
+    torch.save(ck, old / "checkpoint.pt")
+    res = CliRunner().invoke(main, args(old, "--iters", "6", "--quiet"))
+    assert res.exit_code == 0, res.output
+    assert "resuming with its --srgb-weight 0 (a new run would take 400)" in res.output
+    assert weight(old) == 0.0 and torch.load(old / "checkpoint.pt", weights_only=False)["iteration"] == 6
+    res = CliRunner().invoke(main, args(old, "--iters", "9", "--quiet", "--srgb-weight", "400"))
+    assert res.exit_code == 2 and "srgb_weight=0.0" in res.output and "Traceback" not in res.output
+    res = CliRunner().invoke(main, args(tmp_path / "spikelik", "--iters", "6", "--quiet"))  # its own 400: resumes
+    assert res.exit_code == 0 and "resuming with its" not in res.output and weight(tmp_path / "spikelik") == 400.0
+    res = CliRunner().invoke(main, args(tmp_path / "bad", "--srgb-weight", "-1"))
+    assert res.exit_code == 2 and "--srgb-weight" in res.output and not (tmp_path / "bad").exists()
 
 
 def test_upsample_at_sets_the_grid_schedule_and_guards_resume(dataset, tmp_path):

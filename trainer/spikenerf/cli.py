@@ -10,7 +10,7 @@ import click
 from spikegen.errors import SpikegenError
 
 from .config import COARSE_FACTOR, COMPARE_WITH, ITERS_AT, SPACES, TV_LUMINANCE, TrainConfig
-from .methods import DEFAULT_METHOD, METHODS
+from .methods import DEFAULT_METHOD, METHODS, SRGB_WEIGHT
 
 
 class _Group(click.Group):
@@ -85,11 +85,11 @@ def _fractions(ctx, param, value: str) -> tuple:
               help=f"Train the first fraction F of the iterations on the images box-downsampled {COARSE_FACTOR} "
                    "times a side (growing the grid as a run at that size does), then the rest at full size. 0 = full "
                    "size throughout.")
-@click.option("--srgb-weight", "srgb_weight", default=TrainConfig.srgb_weight, show_default=True,
-              type=click.FloatRange(min=0), metavar="MOST",
+@click.option("--srgb-weight", "srgb_weight", default=None, type=click.FloatRange(min=0), metavar="MOST",
               help="Weight each ray's likelihood term by the sRGB encoding's slope at its rendered luminance over "
                    "the slope at grey, squared, at most MOST (385 and above: no cap), so that dark errors weigh as "
-                   "on a display (spikelik methods). 0 = off.")
+                   f"on a display (spikelik methods). 0 = off. [default: {SRGB_WEIGHT:g} for spikelik and "
+                   "spikelik-count, off for the others; a resumed run keeps its own]")
 @click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
               help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
 @click.option("--grid-final", default=TrainConfig.grid_final, show_default=True, type=click.IntRange(min=0),

@@ -70,8 +70,9 @@ class TrainConfig:
     occupancy_threshold: float = 2e-2
     tv_weight: float = 1e-4
     # > 0: each ray's likelihood term weighted by the sRGB slope at its luminance over that at grey, squared, at
-    # most this (train.display_weight); 0 = off
-    srgb_weight: float = 0.0
+    # most this (train.display_weight); 0 = off; None = the method's default (methods.default_srgb_weight: 400 for
+    # the likelihood methods), or a resumed run's own
+    srgb_weight: float | None = None
     tv_luminance: str = "logit"  # what the prior compares of the luminance (TV_LUMINANCE; model.GridField.tv_loss)
     stop_transmittance: float = STOP_TRANSMITTANCE  # early ray termination in training; 0 = none
     lazy_above: int = 0  # grids with more voxels than this train with the lazy Adam (optim.py); 0 = never

@@ -70,3 +70,14 @@ METHODS = {
     "tfi": Method("tfi", "tfi", use_resp=False),
     "oracle": Method("oracle", "truth", use_resp=False, loss="srgb"),
 }
+
+# ``--srgb-weight``'s value for the likelihood methods when a run does not set it (the default since 2026-11-29;
+# chosen on the procedural lego: docs/trainer.md "One window at 400 x 400" and "Weighting each ray as a display
+# does")
+SRGB_WEIGHT = 400.0
+
+
+def default_srgb_weight(name: str) -> float:
+    """``--srgb-weight`` when a run does not set it: :data:`SRGB_WEIGHT` for the likelihood methods (loss
+    ``nll``), 0 (off) for the others, which do not take it."""
+    return SRGB_WEIGHT if METHODS[name].loss == "nll" else 0.0

@@ -22,7 +22,7 @@ from . import ndc, neuron
 from .config import COARSE_FACTOR, SPACES, TrainConfig, default_iters
 from .data import load_dataset
 from .errorrays import ErrorRays
-from .methods import METHODS
+from .methods import METHODS, default_srgb_weight
 from .model import SRGB_SLOPE_AT_GREY, GridField, linear_to_srgb, srgb_slope
 from .optim import LazyGridAdam
 from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
@@ -280,9 +280,9 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     if cfg.coarse_to_fine > 0 and (H % COARSE_FACTOR or W % COARSE_FACTOR or W // COARSE_FACTOR < 8):
         raise InputError(f"--coarse-to-fine: the training images' {W} x {H} must shrink {COARSE_FACTOR} times a side "
                          f"to at least 8 pixels across")
-    if cfg.srgb_weight < 0:
+    if cfg.srgb_weight is not None and not cfg.srgb_weight >= 0:
         raise InputError(f"--srgb-weight must be >= 0 (0 = off), got {cfg.srgb_weight}")
-    if cfg.srgb_weight > 0 and method.loss != "nll":
+    if cfg.srgb_weight and method.loss != "nll":
         raise InputError(f"--srgb-weight is for the likelihood methods (spikelik, spikelik-count), not {cfg.method}")
     if cfg.tv_points and cfg.tv_luminance != "logit":
         raise InputError("--tv-luminance is for the block prior; --tv-points compares the stored values")
@@ -290,11 +290,18 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame,
                               iters=cfg.iters or default_iters(H, W))
     windows = count_windows(ds, method, H, W, cfg.frames, cfg.windows)
-    kept = _checkpoint_windows(out) if asked_windows == 0 else None
+    made = _checkpoint_config(out)  # the config.json of a checkpoint to resume from, else None
+    kept = _positive_int(made.get("windows")) if made is not None and asked_windows == 0 else None
     if kept is not None and kept != windows:  # a run made under an earlier rule (targets.MAX_WINDOW_BLUR_PX)
         log(f"{out}: resuming with its {kept} count windows (a new run would take {windows})")
         windows = kept
-    cfg = dataclasses.replace(cfg, windows=windows)
+    weight = default_srgb_weight(cfg.method) if cfg.srgb_weight is None else float(cfg.srgb_weight)
+    if made is not None and cfg.srgb_weight is None:  # not set: a resumed run keeps its own (before the key: off)
+        kept_weight = float(made.get("srgb_weight", 0.0))
+        if kept_weight != weight:  # a run made before the default changed (2026-11-29)
+            log(f"{out}: resuming with its --srgb-weight {kept_weight:g} (a new run would take {weight:g})")
+            weight = kept_weight
+    cfg = dataclasses.replace(cfg, windows=windows, srgb_weight=weight)
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
     if device.type == "cuda" and cfg.batch_rays == TrainConfig.batch_rays:
@@ -372,16 +379,21 @@ def _resume(ck_path: Path, cfg: TrainConfig, legacy: tuple[int, int], device, fi
     return field, opt, int(ck["iteration"]), float(ck["train_seconds"]), checkpoint_space(ck)
 
 
-def _checkpoint_windows(out: Path) -> int | None:
-    """The count windows recorded with the checkpoint in ``out`` (its ``config.json``), None without one: a
-    run resumed with ``--windows 0`` keeps the count it was made with, whatever the rule now picks."""
+def _checkpoint_config(out: Path) -> dict | None:
+    """The settings recorded with the checkpoint in ``out`` (its ``config.json``), None without one: a run
+    resumed without ``--windows`` or ``--srgb-weight`` keeps what it was made with (:func:`train`), whatever
+    the defaults are now."""
     if not (out / CHECKPOINT).is_file() or not (out / "config.json").is_file():
         return None
     try:
-        windows = json.loads((out / "config.json").read_text()).get("windows")
-    except (OSError, ValueError, AttributeError):
+        made = json.loads((out / "config.json").read_text())
+    except (OSError, ValueError):
         return None
-    return int(windows) if isinstance(windows, int) and windows > 0 else None
+    return made if isinstance(made, dict) else None
+
+
+def _positive_int(v) -> int | None:
+    return int(v) if isinstance(v, int) and v > 0 else None
 
 
 def _frames(ds, frames: int | None) -> int:
