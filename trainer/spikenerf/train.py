@@ -290,17 +290,12 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame,
                               iters=cfg.iters or default_iters(H, W))
     windows = count_windows(ds, method, H, W, cfg.frames, cfg.windows)
-    made = _checkpoint_config(out)  # the config.json of a checkpoint to resume from, else None
-    kept = _positive_int(made.get("windows")) if made is not None and asked_windows == 0 else None
-    if kept is not None and kept != windows:  # a run made under an earlier rule (targets.MAX_WINDOW_BLUR_PX)
-        log(f"{out}: resuming with its {kept} count windows (a new run would take {windows})")
-        windows = kept
     weight = default_srgb_weight(cfg.method) if cfg.srgb_weight is None else float(cfg.srgb_weight)
-    if made is not None and cfg.srgb_weight is None:  # not set: a resumed run keeps its own (before the key: off)
-        kept_weight = float(made.get("srgb_weight", 0.0))
-        if kept_weight != weight:  # a run made before the default changed (2026-11-29)
-            log(f"{out}: resuming with its --srgb-weight {kept_weight:g} (a new run would take {weight:g})")
-            weight = kept_weight
+    made = _checkpoint_config(out)  # the config.json of a checkpoint to resume from, else None
+    if made is not None and asked_windows == 0:  # a run made under an earlier rule (targets.MAX_WINDOW_BLUR_PX)
+        windows = _keep(out, _positive_int(made.get("windows")), windows, lambda n: f"{n} count windows", log)
+    if made is not None and cfg.srgb_weight is None:  # a run made before the default changed (before the key: off)
+        weight = _keep(out, float(made.get("srgb_weight", 0.0)), weight, lambda w: f"--srgb-weight {w:g}", log)
     cfg = dataclasses.replace(cfg, windows=windows, srgb_weight=weight)
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
@@ -394,6 +389,16 @@ def _checkpoint_config(out: Path) -> dict | None:
 
 def _positive_int(v) -> int | None:
     return int(v) if isinstance(v, int) and v > 0 else None
+
+
+def _keep(out: Path, kept, now, name, log):
+    """A resumed run's value of a setting it was not given: ``kept``, its checkpoint's (None: none recorded, then
+    ``now``), said in one line where it differs from ``now``, the value a new run would take; ``name`` words a
+    value."""
+    if kept is None or kept == now:
+        return now
+    log(f"{out}: resuming with its {name(kept)} (a new run would take {now:g})")
+    return kept
 
 
 def _frames(ds, frames: int | None) -> int:
