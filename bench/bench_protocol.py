@@ -50,7 +50,7 @@ from pathlib import Path
 from spikegen.sensor import KINDS
 from spikenerf.config import TrainConfig, default_iters
 from spikenerf.methods import METHODS as TRAINER_METHODS
-from spikenerf.methods import default_srgb_weight
+from spikenerf.methods import default_srgb_weight, white_count
 
 REPO = Path(__file__).resolve().parents[1]
 LEGO = REPO.parent / "shared" / "data" / "nerf_synthetic_lego_400"
@@ -81,6 +81,7 @@ DEFAULT_RAYS = TrainConfig.__dataclass_fields__["batch_rays"].default
 # each ray's display weight in the likelihood (spikenerf train --srgb-weight; 0 = off): rows without the key were
 # made with it off (the trainer's default until 2026-11-29; its default now: spikenerf.methods.default_srgb_weight)
 UNWEIGHTED = 0.0
+STREAM_FRAMES = 256  # the frames of every protocol dataset's streams (spikegen render's and convert's default)
 # the methods that take --srgb-weight: those whose loss is the counts' likelihood (the trainer refuses it elsewhere)
 SRGB_METHODS = tuple(name for name, m in TRAINER_METHODS.items() if m.loss == "nll")
 CAL_INTENSITY, CAL_FRAMES = 64.0, 2000  # the simulated calibration recordings: a dark and two flats
@@ -284,14 +285,21 @@ def cells(args):
                                 "knowledge": knows, "resolution": args.resolution, "seed": seed,
                                 "iterations": args.iters or default_iters(args.resolution, args.resolution),
                                 "frames": args.frames, "field": FIELD, "batch_rays": args.batch_rays,
-                                **({"srgb_weight": _weight(args, method)} if method in SRGB_METHODS else {}),
+                                **({"srgb_weight": _weight(args, method, i)} if method in SRGB_METHODS else {}),
                                 **({"calibration_fit": args.calibration_kind or sensor_kind(sensor)}
                                    if knows == "calibrated maps" else {})}
 
 
-def _weight(args, method: str) -> float:
+def default_weight(method: str, intensity: float, frames: int, windows: int = 1) -> float:
+    """The trainer's default sRGB weight for a protocol run that trains from the first ``frames`` frames (0: all,
+    STREAM_FRAMES) in ``windows`` count windows: the protocol's datasets are made at the run's size (no pixels
+    averaged), and its scenes train with one window (the lego's views are static; every procedural row says 1)."""
+    return default_srgb_weight(method, white_count(intensity, frames or STREAM_FRAMES, windows))
+
+
+def _weight(args, method: str, intensity: float) -> float:
     """The sRGB weight a likelihood method's run trains with: ``--srgb-weight``, else the trainer's default."""
-    return default_srgb_weight(method) if args.srgb_weight is None else args.srgb_weight
+    return default_weight(method, intensity, args.frames) if args.srgb_weight is None else args.srgb_weight
 
 
 def main() -> None:

@@ -23,8 +23,8 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--runs 100:9000,400:27000:1,400:81000:1]   # a third field: that run's --step-ratio (default: the trainer's, 0.5)
         [--runs 100:9000,400:9000:0.5:0.5]   # a fourth: its --error-rays (default: the trainer's, 0)
         [--method oracle]   # another method (default spikelik)
-        [--srgb-weight 0]   # every run with this --srgb-weight (default: the trainer's for the method, 400 for
-                            # the likelihood methods; 0: off)
+        [--srgb-weight 0]   # every run with this --srgb-weight (default: 400 for the likelihood methods, the
+                            # trainer's default where a white pixel counts 16 spikes a window or more; 0: off)
         [--json FILE]  # the rows and the load averages, for the record
         [--device cuda]  # train and evaluate on the GPU (its name and peak GPU memory join the rows)
     python bench/bench_trainer_scale.py --table FILE   # the table of a saved --json file again
@@ -247,8 +247,8 @@ def main() -> None:
     ap.add_argument("--error-rays", type=float, default=TrainConfig.error_rays,
                     help=argparse.SUPPRESS)  # the child's; --runs sets it
     ap.add_argument("--srgb-weight", type=float, default=None, help="every run with the trainer's --srgb-weight "
-                    "(each ray's display weight in the likelihood, at most this; 0 = off; default: the trainer's for "
-                    "the method)")
+                    "(each ray's display weight in the likelihood, at most this; 0 = off; default: 400 for the likelihood "
+                    "methods, the trainer's default on data whose white pixel counts 16 spikes a window or more)")
     args = ap.parse_args()
     if args.table:
         files = [json.loads(f.read_text()) for f in args.table]
@@ -267,7 +267,7 @@ def main() -> None:
         ap.error("a dataset is needed (or --table FILE)")
     if args.method not in METHODS:
         sys.exit(f"unknown --method {args.method!r}; expected one of {', '.join(METHODS)}")
-    if args.srgb_weight is None:  # the trainer's default, said in every row and in the folders' names
+    if args.srgb_weight is None:  # the trainer's default at enough counts; said in every row and folder name
         args.srgb_weight = default_srgb_weight(args.method)
     if not args.srgb_weight >= 0 or (args.srgb_weight and args.method not in SRGB_METHODS):
         sys.exit(f"--srgb-weight must be >= 0, and is for the likelihood methods ({', '.join(SRGB_METHODS)})")

@@ -20,9 +20,8 @@ INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
 from bench_protocol import (DEFAULT_RAYS, FIELD, KEY, KNOWLEDGE,  # noqa: E402 (the runner's names)
                             METHODS, OLD_FIELD, TABLE_ORDER, calibration_fit, row_key, sensor_kind, sensor_model,
-                            sensor_name, srgb_weight)
+                            default_weight, sensor_name, srgb_weight)
 from spikenerf.config import default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
-from spikenerf.methods import default_srgb_weight  # noqa: E402 (no torch either)
 
 # Calibrated maps fitted with another response than the camera's own (Eqs. S2-S6 on the rsir camera, the rows
 # made before the rsir fit): their own row, outside the plan and the third target.
@@ -77,8 +76,10 @@ each ray's error as a display weights it (`--srgb-weight 400`, their default: do
 ray as a display does" and "`--srgb-weight 400` becomes the default"; chosen on the procedural lego, before any
 of these runs had it). A row whose method reads `spikelik --srgb-weight 0` (or `spikelik-count --srgb-weight 0`)
 was made with the weight off, the default before that date: it stands in its own row beside the default's, never
-averaged with it, and fills no planned slot. At 400 x 400 the default 9000 iterations
-are not converged on the real lego: spikelik without the weight (rsir i64, first 25 val views) scores 25.83 dB
+averaged with it, and fills no planned slot. Where a white pixel counts fewer than 16 spikes a count window (the
+first 32 frames at i64: 8) the default is the weight off (docs/trainer.md "The weight needs counts"): there the
+rows made without it are the default's, and those made with it read `spikelik --srgb-weight 400`. At 400 x 400
+the default 9000 iterations are not converged on the real lego: spikelik without the weight (rsir i64, first 25 val views) scores 25.83 dB
 of object PSNR at 9000 and 27.11 at 27000 iterations (bench/results/trainer_scale_20261125.json; docs/trainer.md),
 so every 400 x 400 row here compares methods at the same, unconverged budget. The oracle (ground-truth
 images) gains the same from 9000 to 27000 iterations there (26.66 to 27.94;
@@ -126,11 +127,14 @@ def load(path: Path = RESULTS) -> list:
 
 def _method(r: dict) -> str:
     """The row's method as the tables name it: with ``--srgb-weight W`` where the run's weight is not the
-    trainer's default for the method now (spikenerf.methods.default_srgb_weight: since 2026-11-29 400 for the
-    likelihood methods, whose rows from before then were made with it off and read ``--srgb-weight 0``). Such a
-    run is another method line, never averaged with the method's default runs, and fills no planned slot."""
+    trainer's default for the method now, for the row's counts (bench_protocol.default_weight: since 2026-11-29
+    400 for the likelihood methods, whose rows from before then were made with it off and read ``--srgb-weight 0``;
+    0 where a white pixel counts fewer than 16 spikes a window, as the first 32 frames at i64 do, whose weighted
+    rows read ``--srgb-weight 400``). Such a run is another method line, never averaged with the method's default
+    runs, and fills no planned slot."""
     w = srgb_weight(r)
-    return r["method"] if w == default_srgb_weight(r["method"]) else f"{r['method']} --srgb-weight {w:g}"
+    default = default_weight(r["method"], r["intensity"], r.get("frames") or 0, r.get("windows") or 1)
+    return r["method"] if w == default else f"{r['method']} --srgb-weight {w:g}"
 
 
 def _knowledge(r: dict) -> str:

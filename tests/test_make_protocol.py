@@ -623,3 +623,30 @@ def test_options_section_pairs_each_run_with_the_default_run_of_its_seed():
     assert cells[2:5] == ["spikelik --srgb-weight 400", "true maps", "i64"]
     assert cells[5] == "+0.60 ± 0.14 (2)" and cells[6] == "+0.60 ± 0.14 (2)" and cells[7] == "+0.006 ± 0.001 (2)"
     assert make_protocol.options_section(rows[:2]) == []  # no option off its default: no section
+
+
+def test_short_streams_take_the_unweighted_default_and_their_weighted_rows_are_labelled(tmp_path):
+    """Where a white pixel counts fewer than 16 spikes a window (the first 32 frames at i64: 8), the trainer's
+    default weight is 0: the runner's cell there is unweighted, at 64 frames (16 spikes) or i16 with all 256 (16) weighted; the tables name an
+    unweighted short-stream row ``spikelik`` (the default's) and a weighted one ``spikelik --srgb-weight 400``,
+    while at 64 frames the unweighted row is ``spikelik --srgb-weight 0``."""
+    import argparse
+
+    import bench_protocol
+
+    def cell(frames, intensity=64):
+        args = argparse.Namespace(data=["lego"], sensors=["rsir"], intensities=[intensity], methods=["spikelik"],
+                                  seeds=[0], calibrated=False, calibrated_methods=[], resolution=400, iters=0,
+                                  frames=frames, batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None,
+                                  out=tmp_path, device="cpu")
+        return next(bench_protocol.cells(args))[-1]
+
+    assert cell(32)["srgb_weight"] == 0.0 and cell(64)["srgb_weight"] == 400.0
+    assert cell(0, intensity=16)["srgb_weight"] == 400.0 and cell(128, intensity=16)["srgb_weight"] == 0.0
+    base = {**_row("spikelik", "true maps", 25.0, iterations=9000), "field": bench_protocol.FIELD}
+    rows = [dict(base, frames=32), dict(base, frames=32, srgb_weight=400.0), dict(base, frames=64),
+            dict(base, frames=64, srgb_weight=400.0), dict(base, frames=32, windows=1, srgb_weight=0.0)]
+    path = tmp_path / "rows.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in rows))
+    assert [r["method"] for r in make_protocol.load(path)] == [
+        "spikelik", "spikelik --srgb-weight 400", "spikelik --srgb-weight 0", "spikelik", "spikelik"]

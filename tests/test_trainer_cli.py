@@ -15,6 +15,7 @@ from click.testing import CliRunner  # noqa: E402
 
 from spikegen.spikeio import write_json_atomic, write_png  # noqa: E402
 from spikenerf.cli import main  # noqa: E402
+from spikenerf import methods  # noqa: E402
 from spikenerf.train import TrainConfig, TrainError, train  # noqa: E402
 import spikenerf.train as train_module  # noqa: E402
 
@@ -358,6 +359,29 @@ def test_srgb_weight_defaults_to_400_for_the_likelihood_and_a_resume_keeps_its_o
     assert res.exit_code == 0 and "resuming with its" not in res.output and weight(tmp_path / "spikelik") == 400.0
     res = CliRunner().invoke(main, args(tmp_path / "bad", "--srgb-weight", "-1"))
     assert res.exit_code == 2 and "--srgb-weight" in res.output and not (tmp_path / "bad").exists()
+
+
+def test_srgb_weight_is_off_by_default_where_a_white_pixel_counts_fewer_than_16_spikes(dataset, tmp_path):
+    """The default weight needs counts (methods.SRGB_LEAST_COUNT): the sphere at i64 counts 64 spikes at white in
+    256 frames, 16 in the first 64 (weighted), 8 in the first 32 (off, said in one line), and 8 x 4 = 32 where a
+    half-size target pixel averages 4 sensor pixels (weighted). A weight given is kept whatever the counts."""
+    def weight(run, *more):
+        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device",
+                                        "cpu", "--iters", "2", "--quiet", *more])
+        assert res.exit_code == 0, res.output
+        return json.loads((run / "config.json").read_text())["srgb_weight"], res.output
+
+    assert weight(tmp_path / "f64", "--frames", "64")[0] == 400.0
+    w, out = weight(tmp_path / "f32", "--frames", "32")
+    assert w == 0.0 and "a white pixel counts 8 spikes a count window, fewer than 16" in out
+    assert len([line for line in out.splitlines() if "spikes a count window" in line]) == 1
+    assert weight(tmp_path / "f32half", "--frames", "32", "--resolution", str(SIZE // 2))[0] == 400.0
+    w, out = weight(tmp_path / "f32given", "--frames", "32", "--srgb-weight", "400")
+    assert w == 400.0 and "spikes a count window" not in out
+    assert weight(tmp_path / "count", "--frames", "32", "--method", "spikelik-count")[0] == 0.0
+    assert methods.white_count(64, 32) == 8.0 and methods.white_count(64, 256, windows=4, binning=4) == 64.0
+    assert methods.default_srgb_weight("spikelik", 15.9) == 0.0 and methods.default_srgb_weight("spikelik", 16) == 400
+    assert methods.default_srgb_weight("tfp32", 64) == 0.0 and methods.default_srgb_weight("spikelik") == 400.0
 
 
 def test_upsample_at_sets_the_grid_schedule_and_guards_resume(dataset, tmp_path):

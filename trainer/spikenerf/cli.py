@@ -10,7 +10,7 @@ import click
 from spikegen.errors import SpikegenError
 
 from .config import COARSE_FACTOR, COMPARE_WITH, ITERS_AT, SPACES, TV_LUMINANCE, TrainConfig
-from .methods import DEFAULT_METHOD, METHODS, SRGB_WEIGHT
+from .methods import DEFAULT_METHOD, METHODS, SRGB_LEAST_COUNT, SRGB_WEIGHT
 
 
 class _Group(click.Group):
@@ -89,7 +89,9 @@ def _fractions(ctx, param, value: str) -> tuple:
               help="Weight each ray's likelihood term by the sRGB encoding's slope at its rendered luminance over "
                    "the slope at grey, squared, at most MOST (385 and above: no cap), so that dark errors weigh as "
                    f"on a display (spikelik methods). 0 = off. [default: {SRGB_WEIGHT:g} for spikelik and "
-                   "spikelik-count, off for the others; a resumed run keeps its own]")
+                   f"spikelik-count where a white pixel counts at least {SRGB_LEAST_COUNT:g} spikes a count window "
+                   "(intensity x frames / 256 / windows, times the sensor pixels a smaller --resolution averages), "
+                   "else off; off for the other methods; a resumed run keeps its own]")
 @click.option("--sh-degree", default=TrainConfig.sh_degree, show_default=True, type=click.IntRange(0, 2),
               help="View-dependent luminance: spherical harmonics up to this degree (0 = view-independent).")
 @click.option("--grid-final", default=TrainConfig.grid_final, show_default=True, type=click.IntRange(min=0),

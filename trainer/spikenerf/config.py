@@ -71,7 +71,7 @@ class TrainConfig:
     tv_weight: float = 1e-4
     # > 0: each ray's likelihood term weighted by the sRGB slope at its luminance over that at grey, squared, at
     # most this (train.display_weight); 0 = off; None = the method's default (methods.default_srgb_weight: 400 for
-    # the likelihood methods), or a resumed run's own
+    # the likelihood methods where a white pixel counts at least 16 spikes a window, else 0), or a resumed run's own
     srgb_weight: float | None = None
     tv_luminance: str = "logit"  # what the prior compares of the luminance (TV_LUMINANCE; model.GridField.tv_loss)
     stop_transmittance: float = STOP_TRANSMITTANCE  # early ray termination in training; 0 = none

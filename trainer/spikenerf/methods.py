@@ -40,6 +40,8 @@
 """
 from __future__ import annotations
 
+import math
+
 from dataclasses import dataclass
 
 DEFAULT_METHOD = "spikelik"
@@ -75,9 +77,21 @@ METHODS = {
 # chosen on the procedural lego: docs/trainer.md "One window at 400 x 400" and "Weighting each ray as a display
 # does")
 SRGB_WEIGHT = 400.0
+# ... where a white target pixel counts at least this many spikes a window on average (white_count); below it the
+# default is 0. On the procedural lego at 400 x 400 every weight measured lost at 8 spikes (up to 0.96 dB), at 16
+# the weight is about even (+0.10 and -0.04 dB), at 32 and more it gains (docs/trainer.md "The weight needs counts")
+SRGB_LEAST_COUNT = 16.0
 
 
-def default_srgb_weight(name: str) -> float:
+def white_count(intensity: float, frames: int, windows: int = 1, binning: int = 1) -> float:
+    """The spikes a white pixel (X = 1) counts on average in one count window of ``frames / windows`` frames, the
+    intensity being spikes per 256 frames at X = 1 (spikegen --intensity), times the ``binning`` sensor pixels one
+    target pixel averages (``--resolution`` below the dataset's: the square of the factor)."""
+    return float(intensity) * frames / 256.0 / max(1, windows) * binning
+
+
+def default_srgb_weight(name: str, counts: float = math.inf) -> float:
     """``--srgb-weight`` when a run does not set it: :data:`SRGB_WEIGHT` for the likelihood methods (loss
-    ``nll``), 0 (off) for the others, which do not take it."""
-    return SRGB_WEIGHT if METHODS[name].loss == "nll" else 0.0
+    ``nll``) where a white target pixel counts at least :data:`SRGB_LEAST_COUNT` spikes a window (``counts``,
+    :func:`white_count`; unknown: assumed enough), else 0 (off); 0 for the other methods, which do not take it."""
+    return SRGB_WEIGHT if METHODS[name].loss == "nll" and counts >= SRGB_LEAST_COUNT else 0.0

@@ -22,7 +22,7 @@ from . import ndc, neuron
 from .config import COARSE_FACTOR, SPACES, TrainConfig, default_iters
 from .data import load_dataset
 from .errorrays import ErrorRays
-from .methods import METHODS, default_srgb_weight
+from .methods import METHODS, SRGB_LEAST_COUNT, default_srgb_weight, white_count
 from .model import SRGB_SLOPE_AT_GREY, GridField, linear_to_srgb, srgb_slope
 from .optim import LazyGridAdam
 from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
@@ -290,12 +290,16 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     cfg = dataclasses.replace(cfg, frames=_frames(ds, cfg.frames), fit_box=cfg.fit_box and not ds.fills_frame,
                               iters=cfg.iters or default_iters(H, W))
     windows = count_windows(ds, method, H, W, cfg.frames, cfg.windows)
-    weight = default_srgb_weight(cfg.method) if cfg.srgb_weight is None else float(cfg.srgb_weight)
+    counts = white_count(ds.intensity, cfg.frames, windows, (ds.width // W) ** 2)
+    weight = default_srgb_weight(cfg.method, counts) if cfg.srgb_weight is None else float(cfg.srgb_weight)
     made = _checkpoint_config(out)  # the config.json of a checkpoint to resume from, else None
     if made is not None and asked_windows == 0:  # a run made under an earlier rule (targets.MAX_WINDOW_BLUR_PX)
         windows = _keep(out, _positive_int(made.get("windows")), windows, lambda n: f"{n} count windows", log)
     if made is not None and cfg.srgb_weight is None:  # a run made before the default changed (before the key: off)
         weight = _keep(out, float(made.get("srgb_weight", 0.0)), weight, lambda w: f"--srgb-weight {w:g}", log)
+    elif cfg.srgb_weight is None and default_srgb_weight(cfg.method) != weight:
+        log(f"{ds.root}: a white pixel counts {counts:.3g} spikes a count window, fewer than {SRGB_LEAST_COUNT:g}: "
+            f"training without the sRGB weight (--srgb-weight 0; docs/trainer.md \"The weight needs counts\")")
     cfg = dataclasses.replace(cfg, windows=windows, srgb_weight=weight)
     if ds.heldout != "test":
         log(f"{ds.root}: no test split; evaluating on {ds.heldout} ({len(ds.splits['test'])} views)")
