@@ -79,8 +79,8 @@ was made with the weight off, the default before that date: it stands in its own
 averaged with it, and fills no planned slot. Where a white pixel counts fewer than 16 spikes a count window (the
 first 32 frames at i64: 8) the default is the weight off (docs/trainer.md "The weight needs counts"): there the
 rows made without it are the default's, and those made with it read `spikelik --srgb-weight 400`. At 400 x 400
-the default 9000 iterations are not converged on the real lego: spikelik without the weight (rsir i64, first 25 val views) scores 25.83 dB
-of object PSNR at 9000 and 27.11 at 27000 iterations (bench/results/trainer_scale_20261125.json; docs/trainer.md),
+the default 9000 iterations are not converged on the real lego: spikelik without the weight (rsir i64, first 25
+val views) scores 25.83 dB of object PSNR at 9000 and 27.11 at 27000 iterations (bench/results/trainer_scale_20261125.json; docs/trainer.md),
 so every 400 x 400 row here compares methods at the same, unconverged budget. The oracle (ground-truth
 images) gains the same from 9000 to 27000 iterations there (26.66 to 27.94;
 bench/results/trainer_scale_oracle_20261126.json): the budget holds back the field, spike-fed or not.

@@ -627,9 +627,9 @@ def test_options_section_pairs_each_run_with_the_default_run_of_its_seed():
 
 def test_short_streams_take_the_unweighted_default_and_their_weighted_rows_are_labelled(tmp_path):
     """Where a white pixel counts fewer than 16 spikes a window (the first 32 frames at i64: 8), the trainer's
-    default weight is 0: the runner's cell there is unweighted, at 64 frames (16 spikes) or i16 with all 256 (16) weighted; the tables name an
-    unweighted short-stream row ``spikelik`` (the default's) and a weighted one ``spikelik --srgb-weight 400``,
-    while at 64 frames the unweighted row is ``spikelik --srgb-weight 0``."""
+    default weight is 0: the runner's cell there is unweighted, at 64 frames (16 spikes) or i16 with all 256 (16)
+    weighted; the tables name an unweighted short-stream row ``spikelik`` (the default's) and a weighted one
+    ``spikelik --srgb-weight 400``, while at 64 frames the unweighted row is ``spikelik --srgb-weight 0``."""
     import argparse
 
     import bench_protocol
