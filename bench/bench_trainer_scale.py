@@ -23,8 +23,9 @@ Make the dataset first (a few minutes; keep it outside the repository)::
         [--runs 100:9000,400:27000:1,400:81000:1]   # a third field: that run's --step-ratio (default: the trainer's, 0.5)
         [--runs 100:9000,400:9000:0.5:0.5]   # a fourth: its --error-rays (default: the trainer's, 0)
         [--method oracle]   # another method (default spikelik)
-        [--srgb-weight 0]   # every run with this --srgb-weight (default: 400 for the likelihood methods, the
-                            # trainer's default where a white pixel counts 16 spikes a window or more; 0: off)
+        [--srgb-weight 0]   # every run with this --srgb-weight (default: each run the trainer's default for its
+                            # counts, recorded in its row: 400 for the likelihood methods where a white pixel counts
+                            # 16 spikes a window or more, else 0, off)
         [--json FILE]  # the rows and the load averages, for the record
         [--device cuda]  # train and evaluate on the GPU (its name and peak GPU memory join the rows)
     python bench/bench_trainer_scale.py --table FILE   # the table of a saved --json file again
@@ -43,7 +44,7 @@ from pathlib import Path
 
 from bench_protocol import SRGB_METHODS, _commit, _gpu  # (bench/ is this script's folder: on sys.path)
 from spikenerf.config import TrainConfig, default_iters
-from spikenerf.methods import METHODS, default_srgb_weight
+from spikenerf.methods import METHODS
 
 CONVERGED = 0.3  # dB of object PSNR: a run is converged when three times its iterations gain no more
 
@@ -69,8 +70,9 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
     if gpu:  # and the most memory torch held on it (training and evaluation)
         import torch
         gpu["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
+    used = json.loads((out / "config.json").read_text())  # the run's settings as the trainer resolved them
     return {"method": method, "resolution": resolution, "iters": iters, "step_ratio": cfg.step_ratio,
-            "error_rays": cfg.error_rays, "srgb_weight": cfg.srgb_weight,
+            "error_rays": cfg.error_rays, "srgb_weight": used["srgb_weight"],
             "device": device, **gpu,
             "train_s": t_train, "eval_s": t_eval, "views": m["views"],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -81,8 +83,8 @@ def run_child(args, resolution: int, iters: int, out: Path, step_ratio: float, e
     cmd = [sys.executable, __file__, args.dataset, "--iters", str(iters), "--child", str(resolution),
            "--out", str(out)] + (["--eval-views", str(args.eval_views)] if args.eval_views else []) + \
           (["--sparse"] if args.sparse else []) + ["--method", args.method, "--device", args.device,
-                                                   "--step-ratio", str(step_ratio), "--error-rays", str(error_rays),
-                                                   "--srgb-weight", str(args.srgb_weight)]
+                                                   "--step-ratio", str(step_ratio), "--error-rays", str(error_rays)] + \
+          (["--srgb-weight", str(args.srgb_weight)] if args.srgb_weight is not None else [])
     res = subprocess.run(cmd, capture_output=True, text=True)
     if res.returncode != 0:
         sys.exit(f"the {resolution} x {resolution} run ({iters} iterations) failed: {res.stderr.strip().splitlines()[-1:]}")
@@ -107,6 +109,15 @@ def _mined(row: dict) -> float:
 
 def _weight(row: dict) -> float:
     return row.get("srgb_weight", 0.0)  # rows from before the option: off
+
+
+def _weights(rows: list[dict]) -> str:
+    """The runs' sRGB weights for a table's header: one where all share it (nothing where that is 0, off), else
+    each run's."""
+    weights = {_weight(r) for r in rows}
+    if len(weights) == 1:
+        return f" with --srgb-weight {weights.pop():g}" if _weight(rows[0]) else ""
+    return " with --srgb-weight " + ", ".join(f"{_weight(r):g} ({r['resolution']}:{r['iters']})" for r in rows)
 
 
 def _key(row: dict) -> tuple:
@@ -247,15 +258,15 @@ def main() -> None:
     ap.add_argument("--error-rays", type=float, default=TrainConfig.error_rays,
                     help=argparse.SUPPRESS)  # the child's; --runs sets it
     ap.add_argument("--srgb-weight", type=float, default=None, help="every run with the trainer's --srgb-weight "
-                    "(each ray's display weight in the likelihood, at most this; 0 = off; default: 400 for the likelihood "
-                    "methods, the trainer's default on data whose white pixel counts 16 spikes a window or more)")
+                    "(each ray's display weight in the likelihood, at most this; 0 = off; default: each run the trainer's "
+                    "default for its counts, recorded in its row: 400 for the likelihood methods where a white pixel "
+                    "counts 16 spikes a window or more, else off)")
     args = ap.parse_args()
     if args.table:
         files = [json.loads(f.read_text()) for f in args.table]
         for f, saved in zip(args.table, files):
-            weight = _weight(saved["rows"][0])
             print(f"{f.name}: {saved['dataset']}; method {saved['rows'][0].get('method', 'spikelik')}"
-                  + (f" with --srgb-weight {weight:g}" if weight else "") + "; "
+                  + _weights(saved["rows"]) + "; "
                   f"OMP_NUM_THREADS={saved['omp_threads']}; load average at start "
                   f"{' '.join(f'{x:.2f}' for x in saved['load_start'])}, at end "
                   f"{' '.join(f'{x:.2f}' for x in saved['load_end'])}; commit {saved.get('commit', '?')}")
@@ -267,9 +278,8 @@ def main() -> None:
         ap.error("a dataset is needed (or --table FILE)")
     if args.method not in METHODS:
         sys.exit(f"unknown --method {args.method!r}; expected one of {', '.join(METHODS)}")
-    if args.srgb_weight is None:  # the trainer's default at enough counts; said in every row and folder name
-        args.srgb_weight = default_srgb_weight(args.method)
-    if not args.srgb_weight >= 0 or (args.srgb_weight and args.method not in SRGB_METHODS):
+    if args.srgb_weight is not None and (not args.srgb_weight >= 0
+                                         or (args.srgb_weight and args.method not in SRGB_METHODS)):
         sys.exit(f"--srgb-weight must be >= 0, and is for the likelihood methods ({', '.join(SRGB_METHODS)})")
     if args.child:
         print(json.dumps(child(args.dataset, args.child, args.iters, args.out, args.eval_views, args.sparse,
@@ -279,7 +289,8 @@ def main() -> None:
     plan_text = f"runs {args.runs}" if args.runs else f"{args.iters or 'the default'} iterations"
     print(f"load average at start: {' '.join(f'{x:.2f}' for x in load0)}; "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; "
-          f"{plan_text}; method {args.method}; device {args.device}; sRGB weight {args.srgb_weight:g}; "
+          f"{plan_text}; method {args.method}; device {args.device}; sRGB weight "
+          f"{'the trainer default for each run' if args.srgb_weight is None else format(args.srgb_weight, 'g')}; "
           f"{'lazy optimiser above 128^3' if args.sparse else 'dense Adam'}")
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         base = args.out or Path(tmp)
@@ -293,7 +304,8 @@ def main() -> None:
         rows = []
         for res, iters, step, mined in plan:
             rows.append(run_child(args, res, iters, base / (f"run{res}_{iters}_step{step:g}_mined{mined:g}"
-                                                            + (f"_srgbw{args.srgb_weight:g}" if args.srgb_weight else "")),
+                                                            + (f"_srgbw{args.srgb_weight:g}" if args.srgb_weight is not None
+                                                               else "")),
                                   step, mined))
             rows[-1]["load_after"] = round(os.getloadavg()[0], 2)  # the 1-minute load as the run ended
             print(f"  {res} x {res}, {iters} iterations: {rows[-1]['train_s']:.0f} s, object PSNR "

@@ -2,6 +2,7 @@
 0.3 dB of three times their iterations), and a single run printed without a ratio (it used to fail)."""
 from __future__ import annotations
 
+import json
 import sys
 from pathlib import Path
 
@@ -83,3 +84,36 @@ def test_srgb_weight_bad_input_is_one_line_before_any_run(tmp_path, monkeypatch,
         scale.main()
     assert "--srgb-weight must be >= 0" in str(e.value) and "\n" not in str(e.value)
     assert not (tmp_path / "runs").exists()
+
+
+def test_each_run_trains_at_the_trainers_default_weight_for_its_own_counts(tmp_path_factory, tmp_path):
+    """Without ``--srgb-weight`` a run trains at the trainer's default for its data's counts, and its row records
+    the weight it trained with (read from the run's config.json): 400 on the sphere at i64 (a white pixel counts 64
+    spikes in 256 frames), 0 at i8 (8 spikes, fewer than 16). A weight given is the run's whatever the counts."""
+    from test_trainer_cli import SIZE, sphere_dataset
+
+    hi, lo = sphere_dataset(tmp_path_factory, intensity=64), sphere_dataset(tmp_path_factory, intensity=8)
+    assert scale.child(str(hi), SIZE, 2, tmp_path / "hi", 1, False)["srgb_weight"] == 400.0
+    assert scale.child(str(lo), SIZE, 2, tmp_path / "lo", 1, False)["srgb_weight"] == 0.0
+    assert scale.child(str(lo), SIZE, 2, tmp_path / "given", 1, False, srgb_weight=400.0)["srgb_weight"] == 400.0
+
+
+def test_the_child_is_given_a_weight_only_where_the_call_gave_one(tmp_path, monkeypatch):
+    """The parent passes ``--srgb-weight`` to its runs only when it was given one (else each run's trainer decides
+    by its counts), and the runs' folders say which."""
+    calls = []
+
+    def fake_run(cmd, **kw):
+        calls.append(cmd)
+        return type("Done", (), {"returncode": 0, "stderr": "",
+                                 "stdout": json.dumps(_row(int(cmd[cmd.index("--child") + 1]), 3000, 1.0, 27.0))})()
+
+    monkeypatch.setattr(scale.subprocess, "run", fake_run)
+    for extra in ([], ["--srgb-weight", "0"]):
+        monkeypatch.setattr(sys, "argv", ["bench_trainer_scale.py", str(tmp_path / "data"), "--out",
+                                          str(tmp_path / "runs"), "--runs", "100:3000", *extra])
+        scale.main()
+    plain, zero = calls
+    assert "--srgb-weight" not in plain and zero[zero.index("--srgb-weight") + 1] == "0.0"
+    assert plain[plain.index("--out") + 1].endswith("run100_3000_step0.5_mined0")
+    assert zero[zero.index("--out") + 1].endswith("run100_3000_step0.5_mined0_srgbw0")

@@ -46,8 +46,9 @@ def _sphere_png(path, dist=4.0311):
     write_png(path, rgba)
 
 
-def sphere_dataset(tmp_path_factory, sensor: str = "paper"):
-    """The sphere seen from 16 train views, converted with ``sensor`` at i64: its dataset folder."""
+def sphere_dataset(tmp_path_factory, sensor: str = "paper", intensity: float = 64):
+    """The sphere seen from 16 train views, converted with ``sensor`` at ``intensity`` (default i64): its dataset
+    folder."""
     from spikegen.dataset import convert
 
     src = tmp_path_factory.mktemp(f"sphere_{sensor}")
@@ -58,7 +59,7 @@ def sphere_dataset(tmp_path_factory, sensor: str = "paper"):
         frames.append({"file_path": name, "transform_matrix": _pose(0.4 * k, 0.2 + 0.05 * (k % 5)).tolist()})
     write_json_atomic(src / "transforms_train.json", {"camera_angle_x": ANGLE_X, "frames": frames})
     out = tmp_path_factory.mktemp(f"ds_{sensor}")
-    (folder,) = convert(src, out, [64], sensor=sensor, progress=False)
+    (folder,) = convert(src, out, [intensity], sensor=sensor, progress=False)
     return folder
 
 
