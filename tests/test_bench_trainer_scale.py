@@ -117,3 +117,11 @@ def test_the_child_is_given_a_weight_only_where_the_call_gave_one(tmp_path, monk
     assert "--srgb-weight" not in plain and zero[zero.index("--srgb-weight") + 1] == "0.0"
     assert plain[plain.index("--out") + 1].endswith("run100_3000_step0.5_mined0")
     assert zero[zero.index("--out") + 1].endswith("run100_3000_step0.5_mined0_srgbw0")
+
+
+def test_a_tables_header_names_each_runs_weight_where_they_differ():
+    """One weight for all runs: said once (nothing where it is 0, off); runs at different weights: each run's."""
+    a, b = _row(100, 3000, 100.0, 29.0), _row(400, 9000, 250.0, 27.0)
+    assert scale._weights([a, b]) == ""
+    assert scale._weights([{**a, "srgb_weight": 400.0}, {**b, "srgb_weight": 400.0}]) == " with --srgb-weight 400"
+    assert scale._weights([{**a, "srgb_weight": 400.0}, b]) == " with --srgb-weight 400 (100:3000), 0 (400:9000)"
