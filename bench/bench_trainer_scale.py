@@ -286,11 +286,11 @@ def main() -> None:
                                args.method, args.device, args.step_ratio, args.error_rays, args.srgb_weight)))
         return
     load0 = os.getloadavg()
+    weight = "the trainer's default for each run" if args.srgb_weight is None else f"{args.srgb_weight:g}"
     plan_text = f"runs {args.runs}" if args.runs else f"{args.iters or 'the default'} iterations"
     print(f"load average at start: {' '.join(f'{x:.2f}' for x in load0)}; "
           f"OMP_NUM_THREADS={os.environ.get('OMP_NUM_THREADS', 'unset')}; "
-          f"{plan_text}; method {args.method}; device {args.device}; sRGB weight "
-          f"{'the trainer default for each run' if args.srgb_weight is None else format(args.srgb_weight, 'g')}; "
+          f"{plan_text}; method {args.method}; device {args.device}; sRGB weight {weight}; "
           f"{'lazy optimiser above 128^3' if args.sparse else 'dense Adam'}")
     with tempfile.TemporaryDirectory(prefix="bench_scale_") as tmp:
         base = args.out or Path(tmp)
