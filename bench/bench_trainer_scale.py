@@ -71,8 +71,8 @@ def child(dataset: str, resolution: int, iters: int, out: Path, eval_views: int 
         import torch
         gpu["peak_gpu_mb"] = torch.cuda.max_memory_allocated() / 2 ** 20
     used = json.loads((out / "config.json").read_text())  # the run's settings as the trainer resolved them
-    return {"method": method, "resolution": resolution, "iters": iters, "step_ratio": cfg.step_ratio,
-            "error_rays": cfg.error_rays, "srgb_weight": used["srgb_weight"],
+    return {"method": method, "resolution": resolution, "iters": iters, "step_ratio": used["step_ratio"],
+            "error_rays": used["error_rays"], "srgb_weight": used["srgb_weight"],
             "device": device, **gpu,
             "train_s": t_train, "eval_s": t_eval, "views": m["views"],
             "peak_rss_mb": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024,
@@ -115,9 +115,10 @@ def _weights(rows: list[dict]) -> str:
     """The runs' sRGB weights for a table's header: one where all share it (nothing where that is 0, off), else
     each run's."""
     weights = {_weight(r) for r in rows}
-    if len(weights) == 1:
-        return f" with --srgb-weight {weights.pop():g}" if _weight(rows[0]) else ""
-    return " with --srgb-weight " + ", ".join(f"{_weight(r):g} ({r['resolution']}:{r['iters']})" for r in rows)
+    if len(weights) > 1:
+        return " with --srgb-weight " + ", ".join(f"{_weight(r):g} ({r['resolution']}:{r['iters']})" for r in rows)
+    (weight,) = weights
+    return f" with --srgb-weight {weight:g}" if weight else ""
 
 
 def _key(row: dict) -> tuple:
