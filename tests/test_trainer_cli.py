@@ -484,3 +484,61 @@ def test_iterations_default_follows_the_image_size(dataset, tmp_path):
     cfg = json.loads((run / "config.json").read_text())
     assert cfg["iters"] == default_iters(SIZE, SIZE)
     assert cfg["grid_schedule"][0][0] == int(0.1 * cfg["iters"])
+
+
+@pytest.mark.parametrize("total, n", [(1000, 64), (7, 20), (1, 3), (4096, 4096)])
+def test_shuffled_rays_visit_every_ray_once_an_epoch(total, n):
+    """``--ray-order shuffled``: the run's rays, step after step, are a permutation of the dataset's rays in each
+    epoch, a different one each epoch and seed, and the same for the same seed (rayorder.py)."""
+    from spikenerf.rayorder import shuffled_rays
+    rays = torch.cat([shuffled_rays(i * n, n, total, 3) for i in range(-(-3 * total // n))])[:3 * total]
+    epochs = rays.view(3, total)
+    for e in epochs:
+        assert torch.equal(e.sort().values, torch.arange(total))
+    again = torch.cat([shuffled_rays(i * n, n, total, 3) for i in range(-(-3 * total // n))])[:3 * total]
+    assert torch.equal(rays, again)
+    if total >= 1000:
+        assert not torch.equal(epochs[0], epochs[1]) and not torch.equal(epochs[0], torch.arange(total))
+        assert not torch.equal(shuffled_rays(0, n, total, 4), rays[:n])
+
+
+def test_shuffled_draw_gives_each_view_and_pixel_once_an_epoch():
+    """Batch.draw with ``shuffled``: over one epoch of steps every (view, pixel) pair comes once; the uniform draw
+    repeats some and misses others."""
+    from spikenerf.train import Batch, iteration_generator
+    batch = Batch.__new__(Batch)
+    batch.values, batch.device = torch.zeros(5, 48), torch.device("cpu")
+    n, steps = 16, 5 * 48 // 16
+    for order in ("shuffled", "uniform"):
+        pairs = []
+        for it in range(steps):
+            img, pix, jitter, weights = batch.draw(n, iteration_generator(0, it), None,
+                                                   (it, 0) if order == "shuffled" else None)
+            assert weights is None and jitter.shape == (n,)
+            pairs += list(zip(img.tolist(), pix.tolist()))
+        assert (len(set(pairs)) == 5 * 48) == (order == "shuffled")
+
+
+def test_resume_with_shuffled_rays_gives_the_same_field(dataset, tmp_path):
+    a, b, c = tmp_path / "a", tmp_path / "b", tmp_path / "c"
+    train(_cfg(dataset, iters=50, ray_order="shuffled"), a, progress=False, log=lambda m: None)
+    train(_cfg(dataset, iters=50, ray_order="shuffled"), b, progress=False, log=lambda m: None, stop_at=25)
+    train(_cfg(dataset, iters=50, ray_order="shuffled"), b, progress=False, log=lambda m: None)
+    train(_cfg(dataset, iters=50), c, progress=False, log=lambda m: None)
+    ca, cb, cc = (torch.load(r / "checkpoint.pt", weights_only=False) for r in (a, b, c))
+    assert torch.equal(ca["state"]["grid"], cb["state"]["grid"]) and torch.equal(ca["state"]["sh"], cb["state"]["sh"])
+    assert not torch.equal(ca["state"]["grid"], cc["state"]["grid"])  # the order changed the run
+
+
+def test_ray_order_from_the_command_line_and_resume_guard(dataset, tmp_path):
+    run = tmp_path / "order"
+    args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
+    res = CliRunner().invoke(main, args + ["--iters", "3", "--ray-order", "shuffled"])
+    assert res.exit_code == 0, res.output
+    assert json.loads((run / "config.json").read_text())["ray_order"] == "shuffled"
+    res = CliRunner().invoke(main, args + ["--iters", "6"])
+    assert res.exit_code == 2 and "ray_order='shuffled'" in res.output and "Traceback" not in res.output
+    for bad in (["--ray-order", "random"], ["--ray-order", "shuffled", "--error-rays", "0.5"]):
+        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), *bad])
+        assert res.exit_code == 2 and "--ray-order" in res.output and "Traceback" not in res.output
+        assert not (tmp_path / "bad").exists()

@@ -9,7 +9,7 @@ import click
 
 from spikegen.errors import SpikegenError
 
-from .config import COARSE_FACTOR, COMPARE_WITH, ITERS_AT, SPACES, TV_LUMINANCE, TrainConfig
+from .config import COARSE_FACTOR, COMPARE_WITH, ITERS_AT, RAY_ORDERS, SPACES, TV_LUMINANCE, TrainConfig
 from .methods import DEFAULT_METHOD, METHODS, SRGB_LEAST_COUNT, SRGB_WEIGHT
 
 
@@ -80,6 +80,10 @@ def _fractions(ctx, param, value: str) -> tuple:
               type=click.FloatRange(min=0, max=1, max_open=True),
               help="The fraction of each step's rays drawn where the field's error has been high (tiles of an error "
                    "map); the rest are drawn uniformly. 0 = all uniform.")
+@click.option("--ray-order", "ray_order", type=click.Choice(RAY_ORDERS), default=TrainConfig.ray_order,
+              show_default=True,
+              help="uniform: each step's rays drawn independently (a pixel may repeat before another is drawn); "
+                   "shuffled: every ray of every train view once an epoch, in an order seeded by --seed.")
 @click.option("--coarse-to-fine", "coarse_to_fine", default=TrainConfig.coarse_to_fine, show_default=True,
               type=click.FloatRange(min=0, max=1, max_open=True),
               help=f"Train the first fraction F of the iterations on the images box-downsampled {COARSE_FACTOR} "
@@ -132,7 +136,7 @@ def _fractions(ctx, param, value: str) -> tuple:
 @click.option("--eval/--no-eval", "do_eval", default=False, help="Evaluate on the test split when done.")
 @click.option("--quiet", is_flag=True, help="No progress bar.")
 def train(dataset, method, iters, device, resolution, frames, windows, sensor_maps, out, seed, batch_rays, lr_grid,
-          lr_decay, adam_eps, error_rays, coarse_to_fine, srgb_weight, sh_degree,
+          lr_decay, adam_eps, error_rays, ray_order, coarse_to_fine, srgb_weight, sh_degree,
           grid_final, fit_box, space, stop_transmittance, step_ratio, upsample_at, tv_weight, tv_luminance, tv_points,
           lazy_above,
           checkpoint_every, do_eval, quiet):
@@ -143,7 +147,7 @@ def train(dataset, method, iters, device, resolution, frames, windows, sensor_ma
     out = out or Path("runs") / f"{dataset.name}_{method}"
     cfg = TrainConfig(dataset=str(dataset), method=method, iters=iters, device=device, resolution=resolution,
                       frames=frames, windows=windows, seed=seed, batch_rays=batch_rays, lr_grid=lr_grid, lr_decay=lr_decay,
-                      adam_eps=adam_eps, error_rays=error_rays, coarse_to_fine=coarse_to_fine,
+                      adam_eps=adam_eps, error_rays=error_rays, ray_order=ray_order, coarse_to_fine=coarse_to_fine,
                       srgb_weight=srgb_weight, sh_degree=sh_degree,
                       grid_final=grid_final, fit_box=fit_box, stop_transmittance=stop_transmittance,
                       step_ratio=step_ratio, upsample_at=upsample_at, tv_weight=tv_weight,

@@ -10,6 +10,7 @@ from .methods import DEFAULT_METHOD
 
 SPACES = ("cube", "auto", "ndc")  # TrainConfig.space
 COMPARE_WITH = ("auto", "truth", "reconstruction")  # spikenerf eval --compare-with (eval.reference)
+RAY_ORDERS = ("uniform", "shuffled")  # TrainConfig.ray_order (rayorder.py)
 TV_LUMINANCE = ("logit", "floored", "linear", "srgb", "off")  # TrainConfig.tv_luminance (model.GridField.tv_loss)
 
 # The default iteration count at two image sizes, chosen on the project's procedural lego (spikelik,
@@ -56,6 +57,7 @@ class TrainConfig:
     lr_decay: float = 0.1  # the learning rates decay exponentially to this fraction of their start over the run
     adam_eps: float = 1e-8  # Adam's eps for the voxel grids (the MLP keeps 1e-8)
     error_rays: float = 0.0  # the fraction of each step's rays drawn where the error is high (errorrays.py)
+    ray_order: str = "uniform"  # uniform: drawn independently; shuffled: each ray once an epoch (rayorder.py)
     # the fraction of the iterations trained on the images box-downsampled by COARSE_FACTOR (at that size's grid
     # schedule) before the rest at full size (train.grid_schedule); 0 = full size throughout
     coarse_to_fine: float = 0.0

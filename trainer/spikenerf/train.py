@@ -19,12 +19,13 @@ from spikegen.errors import InputError, SpikegenError
 from spikegen.spikeio import atomic_path, remove_stale_parts, write_json_atomic
 
 from . import ndc, neuron
-from .config import COARSE_FACTOR, SPACES, TrainConfig, default_iters
+from .config import COARSE_FACTOR, RAY_ORDERS, SPACES, TrainConfig, default_iters
 from .data import load_dataset
 from .errorrays import ErrorRays
 from .methods import METHODS, SRGB_LEAST_COUNT, default_srgb_weight, white_count
 from .model import SRGB_SLOPE_AT_GREY, GridField, linear_to_srgb, srgb_slope
 from .optim import LazyGridAdam
+from .rayorder import shuffled_rays
 from .render import BACKGROUND, pixel_rays, render_ndc_rays, render_rays
 from .targets import Targets, build_targets, count_windows
 
@@ -116,15 +117,22 @@ class Batch:
         if tg.kind == "paper":  # the published fixed-pattern maps (Nl, Nd, D_light) [P]
             self.paper_maps = neuron.paper_fpn_maps(self.resp, self.dark, tg.lux_to_rate)
 
-    def draw(self, n: int, gen: torch.Generator, mined: ErrorRays | None = None):
+    def draw(self, n: int, gen: torch.Generator, mined: ErrorRays | None = None,
+             shuffled: tuple[int, int] | None = None):
         """Image and pixel indices ``[n]`` and sample offsets ``[n]``, drawn on the CPU from ``gen``
         (so every device draws the same) and then moved to the run's device, and the rays' weights ``[n]``
         in the loss (None: all 1). With ``mined`` (``--error-rays``) the last ``mined.rays(n)`` rays are drawn
         from its error map, the others uniformly, and the weights undo what the map adds to a ray's chance
-        (ErrorRays.weights)."""
+        (ErrorRays.weights). With ``shuffled = (iteration, seed)`` (``--ray-order shuffled``) the rays are the
+        iteration's ``n`` places of the run's seeded order, every ray once an epoch (rayorder.py), not drawn
+        independently."""
         N, P = self.values.shape
         k = mined.rays(n) if mined is not None else 0
-        img, pix = torch.randint(0, N, (n - k,), generator=gen), torch.randint(0, P, (n - k,), generator=gen)
+        if shuffled is None:
+            img, pix = torch.randint(0, N, (n - k,), generator=gen), torch.randint(0, P, (n - k,), generator=gen)
+        else:  # (``gen`` does not draw these, so the jitter below is not what it is in a uniform draw)
+            flat = shuffled_rays(shuffled[0] * n, n - k, N * P, shuffled[1])
+            img, pix = torch.div(flat, P, rounding_mode="floor"), flat % P
         jitter, weights = torch.rand(n, generator=gen), None
         if k:
             image, pixel = mined.draw(k, gen)
@@ -242,10 +250,10 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
            "adam_eps": 1e-8, "error_rays": 0.0, "coarse_to_fine": 0.0, "tv_luminance": "logit",
-           "srgb_weight": 0.0, "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
+           "ray_order": "uniform", "srgb_weight": 0.0, "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "adam_eps",
-                "error_rays", "coarse_to_fine", "tv_luminance", "srgb_weight", "stop_transmittance", "grid_start",
+                "error_rays", "ray_order", "coarse_to_fine", "tv_luminance", "srgb_weight", "stop_transmittance", "grid_start",
                 "grid_final", "step_ratio", "upsample_at",
                 "sh_degree", "sh_scale", "frames", "windows", "statistic", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
@@ -280,6 +288,11 @@ def train(cfg: TrainConfig, out: Path, progress: bool = True, log=print, stop_at
     if cfg.coarse_to_fine > 0 and (H % COARSE_FACTOR or W % COARSE_FACTOR or W // COARSE_FACTOR < 8):
         raise InputError(f"--coarse-to-fine: the training images' {W} x {H} must shrink {COARSE_FACTOR} times a side "
                          f"to at least 8 pixels across")
+    if cfg.ray_order not in RAY_ORDERS:
+        raise InputError(f"--ray-order {cfg.ray_order!r}: expected one of {', '.join(RAY_ORDERS)}")
+    if cfg.ray_order == "shuffled" and cfg.error_rays > 0:
+        raise InputError("--ray-order shuffled visits every ray once an epoch; --error-rays draws some where the "
+                         "error is high: use one of them")
     if cfg.srgb_weight is not None and not cfg.srgb_weight >= 0:
         raise InputError(f"--srgb-weight must be >= 0 (0 = off), got {cfg.srgb_weight}")
     if cfg.srgb_weight and method.loss != "nll":
@@ -439,7 +452,8 @@ def _loop(cfg, method, field, opt, batch, intensity, cam, schedule, start, train
         at_coarse = coarse is not None and it < coarse[1]
         batch, h, w, camera = coarse[0] if at_coarse else fine
         mining = None if at_coarse else mined
-        img, pix, jitter, weights = batch.draw(cfg.batch_rays, gen, mining)
+        img, pix, jitter, weights = batch.draw(cfg.batch_rays, gen, mining,
+                                               (it, cfg.seed) if cfg.ray_order == "shuffled" else None)
         o, d = pixel_rays(batch.poses[img], pix, h, w, camera)
         if space is None:
             # the composite the sensor model sees
