@@ -305,17 +305,20 @@ def test_run_options_from_the_command_line_and_resume_guard(dataset, tmp_path, o
         assert res.exit_code == 2 and option in res.output and not (tmp_path / "bad").exists()
 
 
-def test_tv_luminance_from_the_command_line_and_resume_guard(dataset, tmp_path):
-    run = tmp_path / "tv"
+@pytest.mark.parametrize("option, value, key, bad", [
+    ("--tv-luminance", "linear", "tv_luminance", (["gamma"], ["srgb", "--tv-points", "64"])),
+    ("--ray-order", "shuffled", "ray_order", (["random"], ["shuffled", "--error-rays", "0.5"]))])
+def test_choice_options_from_the_command_line_and_resume_guard(dataset, tmp_path, option, value, key, bad):
+    run = tmp_path / "choice"
     args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
-    res = CliRunner().invoke(main, args + ["--iters", "3", "--tv-luminance", "linear"])
+    res = CliRunner().invoke(main, args + ["--iters", "3", option, value])
     assert res.exit_code == 0, res.output
-    assert json.loads((run / "config.json").read_text())["tv_luminance"] == "linear"
+    assert json.loads((run / "config.json").read_text())[key] == value
     res = CliRunner().invoke(main, args + ["--iters", "6"])
-    assert res.exit_code == 2 and "tv_luminance='linear'" in res.output and "Traceback" not in res.output
-    for bad in (["--tv-luminance", "gamma"], ["--tv-luminance", "srgb", "--tv-points", "64"]):
-        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), *bad])
-        assert res.exit_code == 2 and "--tv-luminance" in res.output and "Traceback" not in res.output
+    assert res.exit_code == 2 and f"{key}={value!r}" in res.output and "Traceback" not in res.output
+    for rest in bad:
+        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), option, *rest])
+        assert res.exit_code == 2 and option in res.output and "Traceback" not in res.output
         assert not (tmp_path / "bad").exists()
 
 
@@ -529,16 +532,3 @@ def test_resume_with_shuffled_rays_gives_the_same_field(dataset, tmp_path):
     assert torch.equal(ca["state"]["grid"], cb["state"]["grid"]) and torch.equal(ca["state"]["sh"], cb["state"]["sh"])
     assert not torch.equal(ca["state"]["grid"], cc["state"]["grid"])  # the order changed the run
 
-
-def test_ray_order_from_the_command_line_and_resume_guard(dataset, tmp_path):
-    run = tmp_path / "order"
-    args = ["train", str(dataset), "--out", str(run), "--batch-rays", "256", "--device", "cpu", "--quiet"]
-    res = CliRunner().invoke(main, args + ["--iters", "3", "--ray-order", "shuffled"])
-    assert res.exit_code == 0, res.output
-    assert json.loads((run / "config.json").read_text())["ray_order"] == "shuffled"
-    res = CliRunner().invoke(main, args + ["--iters", "6"])
-    assert res.exit_code == 2 and "ray_order='shuffled'" in res.output and "Traceback" not in res.output
-    for bad in (["--ray-order", "random"], ["--ray-order", "shuffled", "--error-rays", "0.5"]):
-        res = CliRunner().invoke(main, ["train", str(dataset), "--out", str(tmp_path / "bad"), *bad])
-        assert res.exit_code == 2 and "--ray-order" in res.output and "Traceback" not in res.output
-        assert not (tmp_path / "bad").exists()

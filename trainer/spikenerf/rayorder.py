@@ -19,18 +19,22 @@ epoch, round])``.
 """
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 import torch
 
 ROUNDS = 4
 
 
-def _round_keys(seed: int, epoch: int) -> list[int]:
-    return [int(np.random.SeedSequence([int(seed), int(epoch), i]).generate_state(1)[0]) & 0x7FFFFFFF
-            for i in range(ROUNDS)]
+@functools.lru_cache(maxsize=8)
+def _round_keys(seed: int, epoch: int) -> tuple[int, ...]:
+    """The network's round keys for one epoch (cached: every step of an epoch uses the same)."""
+    return tuple(int(np.random.SeedSequence([int(seed), int(epoch), i]).generate_state(1)[0]) & 0x7FFFFFFF
+                 for i in range(ROUNDS))
 
 
-def _feistel(x: torch.Tensor, half: int, keys: list[int]) -> torch.Tensor:
+def _feistel(x: torch.Tensor, half: int, keys: tuple[int, ...]) -> torch.Tensor:
     """One pass of the network over values ``x`` (int64) of ``2 * half`` bits."""
     mask = (1 << half) - 1
     left, right = x >> half, x & mask
@@ -62,7 +66,7 @@ def shuffled_rays(start: int, n: int, total: int, seed: int) -> torch.Tensor:
     r = torch.arange(start, start + n, dtype=torch.int64)
     epoch, q = torch.div(r, total, rounding_mode="floor"), r % total
     out = torch.empty_like(q)
-    for e in torch.unique(epoch).tolist():  # a step's rays span at most two epochs unless n > total
+    for e in range(start // total, (start + n - 1) // total + 1):  # at most two epochs a step unless n > total
         sel = epoch == e
         out[sel] = permute(q[sel], total, seed, e)
     return out

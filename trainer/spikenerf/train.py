@@ -249,12 +249,12 @@ def _check_resume(ck: dict, cfg: TrainConfig, path: Path, legacy: tuple[int, int
     all_frames, legacy_windows = legacy
     old = {"sh_degree": 0, "sh_scale": TrainConfig.sh_scale, "frames": all_frames, "sensor_maps": "",
            "fit_box": False, "lazy_above": 0, "space": "cube", "windows": legacy_windows, "lr_grid": 0.1, "lr_decay": 0.1,
-           "adam_eps": 1e-8, "error_rays": 0.0, "coarse_to_fine": 0.0, "tv_luminance": "logit",
-           "ray_order": "uniform", "srgb_weight": 0.0, "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
+           "adam_eps": 1e-8, "error_rays": 0.0, "coarse_to_fine": 0.0, "tv_luminance": "logit", "ray_order": "uniform",
+           "srgb_weight": 0.0, "stop_transmittance": 0.0, "step_ratio": 0.5, "statistic": "count", **ck["config"]}
     new = cfg.to_json()
     for key in ("dataset", "method", "resolution", "seed", "batch_rays", "lr_grid", "lr_decay", "adam_eps",
-                "error_rays", "ray_order", "coarse_to_fine", "tv_luminance", "srgb_weight", "stop_transmittance", "grid_start",
-                "grid_final", "step_ratio", "upsample_at",
+                "error_rays", "ray_order", "coarse_to_fine", "tv_luminance", "srgb_weight", "stop_transmittance",
+                "grid_start", "grid_final", "step_ratio", "upsample_at",
                 "sh_degree", "sh_scale", "frames", "windows", "statistic", "sensor_maps", "fit_box", "lazy_above"):
         if old.get(key) != new.get(key):
             raise InputError(f"{path}: checkpoint was made with {key}={old.get(key)!r}, this run asks "
