@@ -13,7 +13,8 @@ and seed ``spikenerf train`` and ``spikenerf eval``. Each finished run becomes o
 ``bench/results/protocol.jsonl``: what it was (data, sensor, intensity, method, what the method knows
 of the sensor, resolution, seed, iterations, frames, rays a step (rows without it: the default
 2048), the sRGB weight of ``--srgb-weight`` (the likelihood methods' rows; rows without it: 0, off: every run
-before 2026-11-29 that did not set it), device), what it cost (train seconds, wall
+before 2026-11-29 that did not set it), the order rays are drawn in (``--ray-order``; rows without it: ``uniform``,
+every run before 2026-12-02), device), what it cost (train seconds, wall
 seconds, the load average) and every metric (means and per view). A run already in the file is
 skipped, so a long table is completed over several sessions; work folders live in ``--out``, and a
 run interrupted there resumes from its checkpoint (its row says ``resumed_at``: the iteration it
@@ -30,7 +31,7 @@ linear Eqs. S2-S6 for the integrate-and-fire sensors, the rsir fit for ``rsir``;
 for, those of the protocol's plan (bench/make_protocol.py ``PLAN``: what its "Still missing" counts), its
 calibrated-maps runs included. No setting is chosen here: every method runs
 with the trainer's defaults, except where a call names one (``--iters``, ``--frames``, ``--batch-rays``,
-``--srgb-weight``), which its rows state and the tables show in their own rows. ``oracle`` (not a spike method; it knows the ground-truth images of the
+``--srgb-weight``, ``--ray-order``), which its rows state and the tables show in their own rows. ``oracle`` (not a spike method; it knows the ground-truth images of the
 train views) is the same field fitted to those images: what the field can represent.
 """
 from __future__ import annotations
@@ -48,7 +49,7 @@ import time
 from pathlib import Path
 
 from spikegen.sensor import KINDS
-from spikenerf.config import TrainConfig, default_iters
+from spikenerf.config import RAY_ORDERS, TrainConfig, default_iters
 from spikenerf.methods import METHODS as TRAINER_METHODS
 from spikenerf.methods import default_srgb_weight, white_count
 
@@ -75,12 +76,15 @@ TABLE_ORDER = METHODS[:1] + EXTRA_METHODS + METHODS[1:]  # the order of the meth
 # were made with the preset of commits dfecb33 to 76ab7ef: shot noise of N_e = 1.383e4, no jitter.
 LEGACY_CALIBRATED = {"electrons": 13829.406571440471, "threshold_jitter": 0.0}
 KEY = ("data", "sensor", "intensity", "method", "knowledge", "resolution", "seed", "iterations", "frames", "field",
-       "batch_rays", "calibration_fit", "srgb_weight")
+       "batch_rays", "calibration_fit", "srgb_weight", "ray_order")
 # rays a training step (spikenerf train --batch-rays): rows without the key were made at the trainer's default
 DEFAULT_RAYS = TrainConfig.__dataclass_fields__["batch_rays"].default
 # each ray's display weight in the likelihood (spikenerf train --srgb-weight; 0 = off): rows without the key were
 # made with it off (the trainer's default until 2026-11-29; its default now: spikenerf.methods.default_srgb_weight)
 UNWEIGHTED = 0.0
+# the order a run draws its rays in (spikenerf train --ray-order): rows without the key were made with the uniform
+# draw, the trainer's only one before 2026-12-02 (and its default since)
+UNIFORM = "uniform"
 STREAM_FRAMES = 256  # the frames of every protocol dataset's streams (spikegen render's and convert's default)
 # the methods that take --srgb-weight: those whose loss is the counts' likelihood (the trainer refuses it elsewhere)
 SRGB_METHODS = tuple(name for name, m in TRAINER_METHODS.items() if m.loss == "nll")
@@ -178,12 +182,18 @@ def calibration_fit(row: dict) -> str | None:
 def row_key(row: dict) -> tuple:
     return tuple(row.get(k, OLD_FIELD) if k == "field" else sensor_name(row) if k == "sensor" else
                  row.get(k, DEFAULT_RAYS) if k == "batch_rays" else calibration_fit(row) if k == "calibration_fit"
-                 else srgb_weight(row) if k == "srgb_weight" else row[k] for k in KEY)
+                 else srgb_weight(row) if k == "srgb_weight" else ray_order(row) if k == "ray_order" else row[k]
+                 for k in KEY)
 
 
 def srgb_weight(row: dict) -> float:
     """The row's ``--srgb-weight`` (rows without the key: off, UNWEIGHTED)."""
     return float(row.get("srgb_weight", UNWEIGHTED))
+
+
+def ray_order(row: dict) -> str:
+    """The row's ``--ray-order`` (rows without the key: UNIFORM)."""
+    return row.get("ray_order", UNIFORM)
 
 
 def done_keys(results: Path = RESULTS) -> set:
@@ -195,14 +205,16 @@ def done_keys(results: Path = RESULTS) -> set:
 def run_one(folder: Path, cell: dict, args) -> dict:
     """Train and evaluate one run; the results line."""
     # (the folder's name: the key's values; the rays a step and the calibration's fit only where not the default,
-    # the sRGB weight only where not off, so that the folders of runs from before those keys are found again and
-    # resume)
-    name = "_".join(str(cell[k]) for k in KEY if k not in ("batch_rays", "calibration_fit", "srgb_weight"))
+    # the sRGB weight only where not off, the ray order only where not uniform, so that the folders of runs from
+    # before those keys are found again and resume)
+    name = "_".join(str(cell[k]) for k in KEY if k not in ("batch_rays", "calibration_fit", "srgb_weight",
+                                                           "ray_order"))
     name = name.replace(" ", "-").replace(",", "")
     rays, fit, weight = cell["batch_rays"], calibration_fit(cell), srgb_weight(cell)
     run = args.out / f"runs_{args.resolution}" / (name + ("" if rays == DEFAULT_RAYS else f"_rays{rays}")
                                                   + ("" if fit in (None, "if") else f"_{fit}fit")
-                                                  + ("" if weight == UNWEIGHTED else f"_srgbw{weight:g}"))
+                                                  + ("" if weight == UNWEIGHTED else f"_srgbw{weight:g}")
+                                                  + ("" if ray_order(cell) == UNIFORM else f"_{ray_order(cell)}"))
     cmd = ["spikenerf", "train", str(folder), "--method", cell["method"], "--out", str(run), "--device",
            args.device, "--seed", str(cell["seed"]), "--quiet", "--iters", str(cell["iterations"])]
     if cell["frames"]:
@@ -211,6 +223,7 @@ def run_one(folder: Path, cell: dict, args) -> dict:
         cmd += ["--batch-rays", str(rays)]
     if cell["method"] in SRGB_METHODS:  # always said: the trainer's default is not that of every row
         cmd += ["--srgb-weight", f"{weight:g}"]
+    cmd += ["--ray-order", ray_order(cell)]  # always said, likewise
     if cell["knowledge"] == "calibrated maps":
         cmd += ["--sensor-maps", str(calibration(cell["sensor"], args, fit))]
     resumed = _checkpoint_iteration(run)
@@ -285,6 +298,7 @@ def cells(args):
                                 "knowledge": knows, "resolution": args.resolution, "seed": seed,
                                 "iterations": args.iters or default_iters(args.resolution, args.resolution),
                                 "frames": args.frames, "field": FIELD, "batch_rays": args.batch_rays,
+                                "ray_order": args.ray_order,
                                 **({"srgb_weight": _weight(args, method, i)} if method in SRGB_METHODS else {}),
                                 **({"calibration_fit": args.calibration_kind or sensor_kind(sensor)}
                                    if knows == "calibrated maps" else {})}
@@ -319,6 +333,8 @@ def main() -> None:
     ap.add_argument("--srgb-weight", type=float, default=None, help="each ray's display weight in the likelihood, "
                     "at most this (spikenerf train --srgb-weight; the likelihood methods only; 0 = off; default: the "
                     "trainer's); stated in the likelihood methods' rows")
+    ap.add_argument("--ray-order", choices=RAY_ORDERS, default=TrainConfig.ray_order, help="the order a run draws "
+                    "its rays in (spikenerf train --ray-order; default: the trainer's); stated in every row")
     ap.add_argument("--calibrated", action="store_true", help="also run the methods that use the sensor's maps "
                     "with maps from spikegen calibrate on simulated dark and flat recordings of the same camera")
     ap.add_argument("--calibrated-methods", default="", help="with --calibrated or --plan: only these of the "
@@ -354,9 +370,10 @@ def main() -> None:
     if args.calibrated_methods and not (args.calibrated or args.plan):
         sys.exit("--calibrated-methods needs --calibrated or --plan")
     if args.plan and (args.iters not in (0, default_iters(args.resolution, args.resolution)) or args.frames
-                      or args.batch_rays != DEFAULT_RAYS or args.srgb_weight is not None):
-        sys.exit("--plan: the plan's runs are at the default iterations, frames, rays a step and sRGB weight "
-                 "(no --iters, --frames, --batch-rays or --srgb-weight)")
+                      or args.batch_rays != DEFAULT_RAYS or args.srgb_weight is not None
+                      or args.ray_order != TrainConfig.ray_order):
+        sys.exit("--plan: the plan's runs are at the default iterations, frames, rays a step, sRGB weight and ray "
+                 "order (no --iters, --frames, --batch-rays, --srgb-weight or --ray-order)")
     if args.srgb_weight is not None and (args.srgb_weight < 0 or not math.isfinite(args.srgb_weight)):
         sys.exit(f"--srgb-weight must be a number >= 0 (0 = off), got {args.srgb_weight}")
     unweighted = [m for m in args.methods if m not in SRGB_METHODS]
@@ -395,6 +412,7 @@ def _record(row: dict, args) -> None:
     with args.results.open("a") as fh:
         fh.write(json.dumps(row) + "\n")
     weight = f" --srgb-weight {srgb_weight(row):g}" if row["method"] in SRGB_METHODS else ""
+    weight += "" if ray_order(row) == UNIFORM else f" --ray-order {ray_order(row)}"
     print(f"  {row['data']} {row['sensor']} i{row['intensity']} {row['method']}{weight} seed {row['seed']}: PSNR "
           f"{row['metrics']['psnr']:.2f} / object {row['metrics']['psnr_object']:.2f}, train "
           f"{row['train_seconds']:.0f} s", flush=True)

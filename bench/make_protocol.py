@@ -20,8 +20,8 @@ INTENSITIES = (16, 32, 64)
 SEEDS = (0, 1, 2)
 from bench_protocol import (DEFAULT_RAYS, FIELD, KEY, KNOWLEDGE,  # noqa: E402 (the runner's names)
                             METHODS, OLD_FIELD, TABLE_ORDER, calibration_fit, row_key, sensor_kind, sensor_model,
-                            default_weight, sensor_name, srgb_weight)
-from spikenerf.config import default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
+                            default_weight, ray_order, sensor_name, srgb_weight)
+from spikenerf.config import TrainConfig, default_iters  # noqa: E402 (no torch: config.py is a plain dataclass)
 
 # Calibrated maps fitted with another response than the camera's own (Eqs. S2-S6 on the rsir camera, the rows
 # made before the rsir fit): their own row, outside the plan and the third target.
@@ -87,6 +87,10 @@ bench/results/trainer_scale_oracle_20261126.json): the budget holds back the fie
 Rows made before commit 8bf158d trained without early ray termination (`--stop-transmittance`, now
 1e-4): on the procedural lego it moved no score by more than 0.01 dB at 100 x 100 or 400 x 400
 (docs/trainer.md, "Early ray termination"), so rows from before and after it sit in the same tables.
+Every run before 2026-12-02 drew its rays uniformly (each ray's view and pixel independently), the trainer's
+default; a row whose method reads `spikelik --ray-order shuffled` visited every ray of its train views once an
+epoch (`--ray-order shuffled`: docs/trainer.md "Rays once an epoch"; chosen on the procedural lego, before any of
+these runs had it): it stands in its own row beside the default's and fills no planned slot.
 
 **Procedural scenes** (the paper's Table S2 shape, at the CI scale): chair, ficus, hotdog, materials
 and mic, made by `spikegen render --scene S --views 100,0,50 --resolution 100` (Blender, the camera
@@ -131,10 +135,13 @@ def _method(r: dict) -> str:
     400 for the likelihood methods, whose rows from before then were made with it off and read ``--srgb-weight 0``;
     0 where a white pixel counts fewer than 16 spikes a window, as the first 32 frames at i64 do, whose weighted
     rows read ``--srgb-weight 400``). Such a run is another method line, never averaged with the method's default
-    runs, and fills no planned slot."""
+    runs, and fills no planned slot. Likewise ``--ray-order O`` where the run drew its rays in another order than
+    the trainer's default (bench_protocol.ray_order: rows without the key drew them uniformly)."""
     w = srgb_weight(r)
     default = default_weight(r["method"], r["intensity"], r.get("frames") or 0, r.get("windows") or 1)
-    return r["method"] if w == default else f"{r['method']} --srgb-weight {w:g}"
+    order = ray_order(r)
+    return (r["method"] + ("" if w == default else f" --srgb-weight {w:g}")
+            + ("" if order == TrainConfig.ray_order else f" --ray-order {order}"))
 
 
 def _knowledge(r: dict) -> str:

@@ -352,6 +352,7 @@ def test_gpu_runs_at_the_default_budget_fill_the_tables_once():
     (["--calibrated", "--calibrated-methods", "spikenerf"], "spikenerf not among"),
     (["--calibrated", "--calibrated-methods", "nope"], "unknown methods ['nope']"),
     (["--plan", "--srgb-weight", "400"], "--plan: the plan's runs are at the default iterations"),
+    (["--plan", "--ray-order", "shuffled"], "--plan: the plan's runs are at the default iterations"),
     (["--srgb-weight", "400"], "--srgb-weight is for the likelihood methods (spikelik, spikelik-count), not tfp32"),
     (["--methods", "spikelik", "--srgb-weight", "-1"], "--srgb-weight must be a number >= 0"),
     (["--methods", "spikelik", "--srgb-weight", "nan"], "--srgb-weight must be a number >= 0")])
@@ -382,7 +383,7 @@ def test_plan_asks_for_the_runs_still_missing_counts():
                                      "methods": list(bench_protocol.METHODS), "seeds": [0, 1, 2], "calibrated": False,
                                      "calibrated_methods": [], "resolution": res, "iters": 0, "frames": 0,
                                      "batch_rays": 2048, "calibration_kind": None, "plan": True,
-                                     "srgb_weight": None, **kw})
+                                     "srgb_weight": None, "ray_order": "uniform", **kw})
         return [(c["sensor"], c["intensity"], c["method"], c["knowledge"], c["seed"])
                 for *_, c in bench_protocol.cells(args)]
 
@@ -510,7 +511,7 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
     # the runner asks for the camera's own fit, and --calibration-kind overrides it
     args = argparse.Namespace(data=["lego"], sensors=["rsir", "paper"], intensities=[64], methods=["spikelik"],
                               seeds=[0], calibrated=True, calibrated_methods=[], resolution=100, iters=0, frames=0,
-                              batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None)
+                              batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None, ray_order="uniform")
     fits = {(c["sensor"], c.get("calibration_fit")) for *_, c in bench_protocol.cells(args)}
     assert fits == {("rsir", None), ("rsir", "rsir"), ("paper", None), ("paper", "if")}
     args.calibration_kind = "if"
@@ -551,6 +552,7 @@ def test_runs_with_an_srgb_weight_are_other_runs(tmp_path, monkeypatch):
     args = argparse.Namespace(data=["lego"], sensors=["rsir"], intensities=[64], methods=["spikelik", "tfp32"],
                               seeds=[0], calibrated=False, calibrated_methods=[], resolution=400, iters=0, frames=0,
                               batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None,
+                              ray_order="uniform",
                               out=tmp_path, device="cpu")
     cell, tfp = (c for *_, c in bench_protocol.cells(args))
     assert cell["srgb_weight"] == 400.0 and "srgb_weight" not in tfp
@@ -606,6 +608,58 @@ def test_runs_with_an_srgb_weight_are_other_runs(tmp_path, monkeypatch):
     assert left(rows[:1]) == left([]) == left(rows[1:]) + 1
 
 
+def test_runs_with_another_ray_order_are_other_runs(tmp_path, monkeypatch):
+    """The ray order (``--ray-order``): the runner always says it to the trainer and its rows record it (rows without
+    the key: uniform, the only order before 2026-12-02); a shuffled run is its own key in its own folder, and stands
+    in the tables as its own method line (``spikelik --ray-order shuffled``) that the options section sets against
+    the default's run of the same seed."""
+    import argparse
+
+    import bench_protocol
+    args = argparse.Namespace(data=["lego"], sensors=["rsir"], intensities=[64], methods=["spikelik", "tfp32"],
+                              seeds=[0], calibrated=False, calibrated_methods=[], resolution=400, iters=0, frames=0,
+                              batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None,
+                              ray_order="uniform", out=tmp_path, device="cpu")
+    calls = []
+
+    def fake_run(cmd):  # what spikenerf train and eval would leave in the run folder
+        calls.append(cmd)
+        run = Path(cmd[cmd.index("--out") + 1] if "--out" in cmd else cmd[2])
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "config.json").write_text(json.dumps({"device_used": "cpu"}))
+        (run / "metrics.json").write_text(json.dumps({"train_seconds": 1.0, "psnr": 30.0, "psnr_object": 25.0,
+                                                      "per_view": []}))
+        return ""
+
+    monkeypatch.setattr(bench_protocol, "_run", fake_run)
+    uniform = [c for *_, c in bench_protocol.cells(args)]
+    args.ray_order = "shuffled"
+    shuffled = [c for *_, c in bench_protocol.cells(args)]
+    assert [c["ray_order"] for c in uniform + shuffled] == ["uniform"] * 2 + ["shuffled"] * 2
+    folders = []
+    for cell in uniform + shuffled:
+        calls.clear()
+        row = bench_protocol.run_one(tmp_path / "data", cell, args)
+        train = calls[0]
+        assert train[train.index("--ray-order") + 1] == cell["ray_order"] == row["ray_order"]
+        folders.append(train[train.index("--out") + 1])
+    assert folders[0].endswith("_srgbw400") and folders[2] == folders[0] + "_shuffled"
+    assert folders[3] == folders[1] + "_shuffled" and len(set(folders)) == 4
+
+    base = {**_row("spikelik", "true maps", 25.0, iterations=9000), "field": bench_protocol.FIELD,
+            "srgb_weight": 400.0, "metrics": {"psnr_object": 25.0, "psnr": 30.0, "ssim_object": 0.9}}
+    other = {**base, "ray_order": "shuffled", "metrics": {"psnr_object": 25.2, "psnr": 30.1, "ssim_object": 0.91}}
+    assert bench_protocol.row_key(base) == bench_protocol.row_key({**base, "ray_order": "uniform"})
+    assert bench_protocol.row_key(other) != bench_protocol.row_key(base)
+    path = tmp_path / "rows.jsonl"
+    path.write_text("".join(json.dumps(r) + "\n" for r in (base, other)))
+    rows = make_protocol.load(path)
+    assert [r["method"] for r in rows] == ["spikelik", "spikelik --ray-order shuffled"]
+    line = next(x for x in make_protocol.options_section(rows) if x.startswith("| lego, rsir, 400 x 400 |"))
+    cells = [c.strip() for c in line.split("|")[1:-1]]
+    assert cells[2] == "spikelik --ray-order shuffled" and cells[5:8] == ["+0.20 (1)", "+0.10 (1)", "+0.010 (1)"]
+
+
 def test_options_section_pairs_each_run_with_the_default_run_of_its_seed():
     """A run with a trainer option is set against the same method's default run of its seed (same data,
     knowledge, budget, intensity): mean and SD of the per-seed differences; a seed with no default twin, or a
@@ -638,6 +692,7 @@ def test_short_streams_take_the_unweighted_default_and_their_weighted_rows_are_l
         args = argparse.Namespace(data=["lego"], sensors=["rsir"], intensities=[intensity], methods=["spikelik"],
                                   seeds=[0], calibrated=False, calibrated_methods=[], resolution=400, iters=0,
                                   frames=frames, batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None,
+                                  ray_order="uniform",
                                   out=tmp_path, device="cpu")
         return next(bench_protocol.cells(args))[-1]
 
