@@ -50,6 +50,9 @@
 #   errorrays  spikelik at 400 x 400 with --error-rays 0.5 (docs/trainer.md "Error-guided rays") for 9000 and
 #              27000 iterations at the default 2048 rays a step (bench_trainer_scale.py --device cuda, 25 views;
 #              needs the spikelik stage's dataset): is the 9000-iteration run converged (0.3 dB), and in what time
+#   shuffled   the srgbwconv stage's first run (32768 rays a step, 5063 iterations) and the protocol's spikelik run
+#              (9000 of 2048), each with --ray-order shuffled (docs/trainer.md "Rays once an epoch"): their rows
+#              read `spikelik --ray-order shuffled` beside the same runs drawn uniformly
 #   srgbw      spikelik with --srgb-weight 400 (docs/trainer.md "Weighting each ray as a display does") at 9000
 #              iterations of 2048 rays and 5063 of 32768, as protocol rows: the same runs' GPU rows without it
 #              score 25.83 and 27.12 dB of object PSNR
@@ -67,7 +70,7 @@ BUDGET=${3:-540}
 shift $(( $# < 3 ? $# : 3 ))
 STAGES=${*:-tests spikelik profile baselines converge}
 for st in $STAGES; do
-    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|conv32k|fill|errorrays|srgbw|srgbw32k|srgbwconv) ;; *) echo "unknown stage $st"; exit 2 ;; esac
+    case $st in tests|spikelik|profile|baselines|converge|converge81|stop|rays|rays3|rays32k|conv32k|fill|errorrays|srgbw|srgbw32k|srgbwconv|shuffled) ;; *) echo "unknown stage $st"; exit 2 ;; esac
 done
 T0=$(date +%s)
 mkdir -p "$OUT"
@@ -148,6 +151,9 @@ for st in $STAGES; do
         srgbwconv) stage protocol_srgbw_rays32768_15189 $P --methods spikelik --seeds 0 --iters 15189 \
                        --batch-rays 32768 --srgb-weight 400
                    reached "${RUN/9000/15189}_rays32768$W" ;;
+        shuffled) stage protocol_shuffled_rays32768_5063 $P --methods spikelik --seeds 0 --iters 5063 \
+                      --batch-rays 32768 --ray-order shuffled
+                  stage protocol_shuffled_9000 $P --methods spikelik --seeds 0 --ray-order shuffled ;;
         fill) # the CPU's rows are put in front so that their runs are skipped, and taken out again after
               F=$OUT/protocol_fill.jsonl
               [ -f "$F" ] || cat bench/results/protocol.jsonl "$OUT/protocol_gpu.jsonl" > "$F"

@@ -539,6 +539,20 @@ def test_calibrated_maps_fitted_for_another_response_are_their_own_rows(tmp_path
     assert ("spikenerf", "calibrated maps") not in make_protocol.PLANNED_LEGO
 
 
+def _fake_trainer(calls: list):
+    """bench_protocol._run in place of spikenerf train and eval: each command is appended to ``calls``, and the run
+    folder gets what they would leave there (config.json, metrics.json)."""
+    def fake_run(cmd):
+        calls.append(cmd)
+        run = Path(cmd[cmd.index("--out") + 1] if "--out" in cmd else cmd[2])
+        run.mkdir(parents=True, exist_ok=True)
+        (run / "config.json").write_text(json.dumps({"device_used": "cpu"}))
+        (run / "metrics.json").write_text(json.dumps({"train_seconds": 1.0, "psnr": 30.0, "psnr_object": 25.0,
+                                                      "per_view": []}))
+        return ""
+    return fake_run
+
+
 def test_runs_with_an_srgb_weight_are_other_runs(tmp_path, monkeypatch):
     """The sRGB weight (``--srgb-weight``): a likelihood method's run takes the trainer's default (400 since
     2026-11-29) unless the call sets one, the runner always says it to the trainer, and its rows record it (rows
@@ -552,22 +566,11 @@ def test_runs_with_an_srgb_weight_are_other_runs(tmp_path, monkeypatch):
     args = argparse.Namespace(data=["lego"], sensors=["rsir"], intensities=[64], methods=["spikelik", "tfp32"],
                               seeds=[0], calibrated=False, calibrated_methods=[], resolution=400, iters=0, frames=0,
                               batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None,
-                              ray_order="uniform",
-                              out=tmp_path, device="cpu")
+                              ray_order="uniform", out=tmp_path, device="cpu")
     cell, tfp = (c for *_, c in bench_protocol.cells(args))
     assert cell["srgb_weight"] == 400.0 and "srgb_weight" not in tfp
     calls = []
-
-    def fake_run(cmd):  # what spikenerf train and eval would leave in the run folder
-        calls.append(cmd)
-        run = Path(cmd[cmd.index("--out") + 1] if "--out" in cmd else cmd[2])
-        run.mkdir(parents=True, exist_ok=True)
-        (run / "config.json").write_text(json.dumps({"device_used": "cpu"}))
-        (run / "metrics.json").write_text(json.dumps({"train_seconds": 1.0, "psnr": 30.0, "psnr_object": 25.0,
-                                                      "per_view": []}))
-        return ""
-
-    monkeypatch.setattr(bench_protocol, "_run", fake_run)
+    monkeypatch.setattr(bench_protocol, "_run", _fake_trainer(calls))
     row = bench_protocol.run_one(tmp_path / "data", cell, args)
     train = calls[0]
     assert train[train.index("--srgb-weight") + 1] == "400" and train[train.index("--out") + 1].endswith("_srgbw400")
@@ -621,17 +624,7 @@ def test_runs_with_another_ray_order_are_other_runs(tmp_path, monkeypatch):
                               batch_rays=2048, calibration_kind=None, plan=False, srgb_weight=None,
                               ray_order="uniform", out=tmp_path, device="cpu")
     calls = []
-
-    def fake_run(cmd):  # what spikenerf train and eval would leave in the run folder
-        calls.append(cmd)
-        run = Path(cmd[cmd.index("--out") + 1] if "--out" in cmd else cmd[2])
-        run.mkdir(parents=True, exist_ok=True)
-        (run / "config.json").write_text(json.dumps({"device_used": "cpu"}))
-        (run / "metrics.json").write_text(json.dumps({"train_seconds": 1.0, "psnr": 30.0, "psnr_object": 25.0,
-                                                      "per_view": []}))
-        return ""
-
-    monkeypatch.setattr(bench_protocol, "_run", fake_run)
+    monkeypatch.setattr(bench_protocol, "_run", _fake_trainer(calls))
     uniform = [c for *_, c in bench_protocol.cells(args)]
     args.ray_order = "shuffled"
     shuffled = [c for *_, c in bench_protocol.cells(args)]
