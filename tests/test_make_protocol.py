@@ -651,6 +651,14 @@ def test_runs_with_another_ray_order_are_other_runs(tmp_path, monkeypatch):
     line = next(x for x in make_protocol.options_section(rows) if x.startswith("| lego, rsir, 400 x 400 |"))
     cells = [c.strip() for c in line.split("|")[1:-1]]
     assert cells[2] == "spikelik --ray-order shuffled" and cells[5:8] == ["+0.20 (1)", "+0.10 (1)", "+0.010 (1)"]
+    # its target line is set against the others drawn in its order, never against the uniform ones: none at first
+    port = {**base, "method": "spikenerf-paper", "metrics": {"psnr_object": 24.0}}
+    label = "lego, rsir, 400 x 400, 9000 it (spikelik --ray-order shuffled: not the default)"
+    line = next(x for x in make_protocol.targets(rows + [port]) if label in x)
+    assert [c.strip() for c in line.split("|")[1:-1]][2:] == ["–", "–", "–", "–"]
+    line = next(x for x in make_protocol.targets(rows + [port, {**port, "method": "spikenerf-paper --ray-order shuffled",
+                                                                 "metrics": {"psnr_object": 21.0}}]) if label in x)
+    assert "| +4.20 (met; 1 of 3 seeds) |" in line  # 25.2 - 21.0, not 25.2 - 24.0
 
 
 def test_options_section_pairs_each_run_with_the_default_run_of_its_seed():
