@@ -31,8 +31,9 @@ linear Eqs. S2-S6 for the integrate-and-fire sensors, the rsir fit for ``rsir``;
 for, those of the protocol's plan (bench/make_protocol.py ``PLAN``: what its "Still missing" counts), its
 calibrated-maps runs included. No setting is chosen here: every method runs
 with the trainer's defaults, except where a call names one (``--iters``, ``--frames``, ``--batch-rays``,
-``--srgb-weight``, ``--ray-order``), which its rows state and the tables show in their own rows. ``oracle`` (not a spike method; it knows the ground-truth images of the
-train views) is the same field fitted to those images: what the field can represent.
+``--srgb-weight``, ``--ray-order``), which its rows state and the tables show in their own rows. ``oracle`` (not a
+spike method; it knows the ground-truth images of the train views) is the same field fitted to those images: what
+the field can represent.
 """
 from __future__ import annotations
 
@@ -210,11 +211,11 @@ def run_one(folder: Path, cell: dict, args) -> dict:
     name = "_".join(str(cell[k]) for k in KEY if k not in ("batch_rays", "calibration_fit", "srgb_weight",
                                                            "ray_order"))
     name = name.replace(" ", "-").replace(",", "")
-    rays, fit, weight = cell["batch_rays"], calibration_fit(cell), srgb_weight(cell)
+    rays, fit, weight, order = cell["batch_rays"], calibration_fit(cell), srgb_weight(cell), ray_order(cell)
     run = args.out / f"runs_{args.resolution}" / (name + ("" if rays == DEFAULT_RAYS else f"_rays{rays}")
                                                   + ("" if fit in (None, "if") else f"_{fit}fit")
                                                   + ("" if weight == UNWEIGHTED else f"_srgbw{weight:g}")
-                                                  + ("" if ray_order(cell) == UNIFORM else f"_{ray_order(cell)}"))
+                                                  + ("" if order == UNIFORM else f"_{order}"))
     cmd = ["spikenerf", "train", str(folder), "--method", cell["method"], "--out", str(run), "--device",
            args.device, "--seed", str(cell["seed"]), "--quiet", "--iters", str(cell["iterations"])]
     if cell["frames"]:
@@ -223,7 +224,7 @@ def run_one(folder: Path, cell: dict, args) -> dict:
         cmd += ["--batch-rays", str(rays)]
     if cell["method"] in SRGB_METHODS:  # always said: the trainer's default is not that of every row
         cmd += ["--srgb-weight", f"{weight:g}"]
-    cmd += ["--ray-order", ray_order(cell)]  # always said, likewise
+    cmd += ["--ray-order", order]  # always said, likewise
     if cell["knowledge"] == "calibrated maps":
         cmd += ["--sensor-maps", str(calibration(cell["sensor"], args, fit))]
     resumed = _checkpoint_iteration(run)
@@ -411,9 +412,9 @@ def _record(row: dict, args) -> None:
         row = {**row, "jobs": args.jobs}
     with args.results.open("a") as fh:
         fh.write(json.dumps(row) + "\n")
-    weight = f" --srgb-weight {srgb_weight(row):g}" if row["method"] in SRGB_METHODS else ""
-    weight += "" if ray_order(row) == UNIFORM else f" --ray-order {ray_order(row)}"
-    print(f"  {row['data']} {row['sensor']} i{row['intensity']} {row['method']}{weight} seed {row['seed']}: PSNR "
+    options = (f" --srgb-weight {srgb_weight(row):g}" if row["method"] in SRGB_METHODS else "") + \
+        ("" if ray_order(row) == UNIFORM else f" --ray-order {ray_order(row)}")
+    print(f"  {row['data']} {row['sensor']} i{row['intensity']} {row['method']}{options} seed {row['seed']}: PSNR "
           f"{row['metrics']['psnr']:.2f} / object {row['metrics']['psnr_object']:.2f}, train "
           f"{row['train_seconds']:.0f} s", flush=True)
 
