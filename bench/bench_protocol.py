@@ -29,7 +29,8 @@ real camera has) instead of the dataset's true maps, fitted for the camera's own
 linear Eqs. S2-S6 for the integrate-and-fire sensors, the rsir fit for ``rsir``; rows say which in
 ``calibration_fit``, and rows without it were made with Eqs. S2-S6). ``--plan`` keeps, of the runs asked
 for, those of the protocol's plan (bench/make_protocol.py ``PLAN``: what its "Still missing" counts), its
-calibrated-maps runs included. No setting is chosen here: every method runs
+calibrated-maps runs included; with ``--ray-order shuffled``, the plan drawn in that order (what its "The plan
+drawn in the shuffled order" counts: the runs the default's change waits for). No setting is chosen here: every method runs
 with the trainer's defaults, except where a call names one (``--iters``, ``--frames``, ``--batch-rays``,
 ``--srgb-weight``, ``--ray-order``), which its rows state and the tables show in their own rows. ``oracle`` (not a
 spike method; it knows the ground-truth images of the train views) is the same field fitted to those images: what
@@ -343,7 +344,9 @@ def main() -> None:
                     "the protocol's plan, bench/make_protocol.py PLAN, has spikelik alone)")
     ap.add_argument("--plan", action="store_true", help="only the runs of the protocol's plan "
                     "(bench/make_protocol.py PLAN) among those asked for: the plan's (method, knowledge) pairs, its "
-                    "calibrated-maps runs included (no --calibrated needed), at the default iterations, frames and rays")
+                    "calibrated-maps runs included (no --calibrated needed), at the default iterations, frames, rays "
+                    "and sRGB weight; with --ray-order shuffled the plan drawn in that order (make_protocol's \"The "
+                    "plan drawn in the shuffled order\" counts what is left of it)")
     ap.add_argument("--calibration-kind", choices=KINDS, default=None, help="the response the "
                     "calibrated maps are fitted for (spikegen calibrate --kind; default: the camera's own)")
     ap.add_argument("--device", default="auto")
@@ -371,10 +374,9 @@ def main() -> None:
     if args.calibrated_methods and not (args.calibrated or args.plan):
         sys.exit("--calibrated-methods needs --calibrated or --plan")
     if args.plan and (args.iters not in (0, default_iters(args.resolution, args.resolution)) or args.frames
-                      or args.batch_rays != DEFAULT_RAYS or args.srgb_weight is not None
-                      or args.ray_order != TrainConfig.ray_order):
-        sys.exit("--plan: the plan's runs are at the default iterations, frames, rays a step, sRGB weight and ray "
-                 "order (no --iters, --frames, --batch-rays, --srgb-weight or --ray-order)")
+                      or args.batch_rays != DEFAULT_RAYS or args.srgb_weight is not None):
+        sys.exit("--plan: the plan's runs are at the default iterations, frames, rays a step and sRGB weight "
+                 "(no --iters, --frames, --batch-rays or --srgb-weight; --ray-order makes the plan in that order)")
     if args.srgb_weight is not None and (args.srgb_weight < 0 or not math.isfinite(args.srgb_weight)):
         sys.exit(f"--srgb-weight must be a number >= 0 (0 = off), got {args.srgb_weight}")
     unweighted = [m for m in args.methods if m not in SRGB_METHODS]

@@ -91,8 +91,9 @@ Every run before 2026-12-02 drew its rays uniformly (each ray's view and pixel i
 default; a row whose method ends in `--ray-order shuffled` (`spikelik --ray-order shuffled`, `tfp32 --ray-order
 shuffled`, ...) visited every ray of its train views once an epoch (`--ray-order shuffled`: docs/trainer.md "Rays
 once an epoch"; chosen on the procedural lego, before any of these runs had it): it stands in its own row beside
-the default's and fills no planned slot, and its target line sets it against the port, baselines and oracle drawn
-in the same order (every method draws rays; "–" where none of those was run).
+the default's and fills no planned slot of the default's (it fills one of the plan drawn in its order, counted in
+the last section), and its target line sets it against the port, baselines and oracle drawn in the same order
+(every method draws rays; "–" where none of those was run).
 
 **Procedural scenes** (the paper's Table S2 shape, at the CI scale): chair, ficus, hotdog, materials
 and mic, made by `spikegen render --scene S --views 100,0,50 --resolution 100` (Blender, the camera
@@ -275,8 +276,13 @@ def _loads(rows) -> str:
     return f"{min(la):.2f} to {max(la):.2f}"
 
 
-def missing(rows: list) -> list[str]:
-    """The planned runs (PLAN, at the trainer's default iteration count for the resolution) not in the results."""
+def plan_gaps(rows: list, order: str = TrainConfig.ray_order) -> list[tuple]:
+    """The planned runs (PLAN, at the trainer's default iteration count for the resolution) not in the results,
+    per cell of the plan: ``(resolution, data, sensor name, intensities, (method, knowledge) pairs, the runs
+    wanted [(intensity, pair, seed)], those not made)``. ``order``: the plan drawn in that ray order
+    (``bench_protocol.py --plan --ray-order O``): a run fills its slot when its table label is the method's with
+    ``--ray-order O`` alone (:func:`_method`: every other option at its default)."""
+    suffix = "" if order == TrainConfig.ray_order else f" --ray-order {order}"
     have = {(r["resolution"], r["data"], r["sensor"], r["intensity"], (r["method"], r["knowledge"]), r["seed"])
             for r in rows
             if r["iterations"] == default_iters(r["resolution"], r["resolution"]) and not r["frames"]
@@ -286,15 +292,36 @@ def missing(rows: list) -> list[str]:
         for data, preset in itertools.product(datas, sensors):
             sensor = sensor_name({"sensor": preset, "sensor_model": sensor_model(preset)})  # the preset as it is now
             want = list(itertools.product(intensities, methods, SEEDS))
-            gone = [w for w in want if (res, data, sensor) + w not in have]
-            if gone:
-                what = "intensity x method x seed" if len(intensities) > 1 else f"i{intensities[0]}, method x seed"
-                line = (f"- {data}, {sensor}, {res} x {res} at {default_iters(res, res)} iterations: "
-                        f"{len(gone)} of {len(want)} runs ({what}) not yet run")
-                if len(gone) < len(want):
-                    line += f": {_which(gone, methods)}"
-                out.append(line)
+            gone = [w for w in want if (res, data, sensor, w[0], (w[1][0] + suffix, w[1][1]), w[2]) not in have]
+            out.append((res, data, sensor, intensities, methods, want, gone))
     return out
+
+
+def missing(rows: list, order: str = TrainConfig.ray_order) -> list[str]:
+    """A line for each cell of the plan with runs not made (:func:`plan_gaps`; ``order`` as there)."""
+    out = []
+    for res, data, sensor, intensities, methods, want, gone in plan_gaps(rows, order):
+        if gone:
+            what = "intensity x method x seed" if len(intensities) > 1 else f"i{intensities[0]}, method x seed"
+            line = (f"- {data}, {sensor}, {res} x {res} at {default_iters(res, res)} iterations: "
+                    f"{len(gone)} of {len(want)} runs ({what}) not yet run")
+            if len(gone) < len(want):
+                line += f": {_which(gone, methods)}"
+            out.append(line)
+    return out
+
+
+def shuffled_plan_note(rows: list) -> str:
+    """What the section on the plan drawn in the shuffled order says before its list: why it is there and how
+    much of it is made."""
+    gaps = plan_gaps(rows, "shuffled")
+    wanted, made = sum(len(g[5]) for g in gaps), sum(len(g[5]) - len(g[6]) for g in gaps)
+    return ("The trainer draws rays uniformly by default, and every planned run above was drawn so. "
+            "`--ray-order shuffled` becomes the default only once the whole plan has been made in that order too, "
+            "so that the tables then compare the new default's runs and nothing else (what it changed in each run "
+            "made so far: \"Trainer options off their defaults\" above). "
+            "`python bench/bench_protocol.py --plan --ray-order shuffled` (with the cell's --resolution, --data, "
+            f"--sensors) makes them. Made so far: {made} of the plan's {wanted} runs; not yet made:")
 
 
 def _which(gone: list, methods) -> str:
@@ -778,6 +805,9 @@ def main() -> None:
         lines += gpu_section(gpu, cpu)  # beside the CPU's own runs: a GPU run that fills a table is not its own pair
     lines += ["## Still missing (current trainer)", ""]
     lines += missing(rows) or ["Nothing: every planned run is in the results file."]
+    lines += ["", "## The plan drawn in the shuffled order (`--ray-order shuffled`, not the default)", "",
+              shuffled_plan_note(rows), ""]
+    lines += missing(rows, "shuffled") or ["Nothing: every planned run has been made in that order too."]
     OUT.write_text("\n".join(lines) + "\n")
     print(f"{OUT}: {len(rows)} runs of the current trainer, {len(old)} earlier")
 

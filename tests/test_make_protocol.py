@@ -352,7 +352,6 @@ def test_gpu_runs_at_the_default_budget_fill_the_tables_once():
     (["--calibrated", "--calibrated-methods", "spikenerf"], "spikenerf not among"),
     (["--calibrated", "--calibrated-methods", "nope"], "unknown methods ['nope']"),
     (["--plan", "--srgb-weight", "400"], "--plan: the plan's runs are at the default iterations"),
-    (["--plan", "--ray-order", "shuffled"], "--plan: the plan's runs are at the default iterations"),
     (["--srgb-weight", "400"], "--srgb-weight is for the likelihood methods (spikelik, spikelik-count), not tfp32"),
     (["--methods", "spikelik", "--srgb-weight", "-1"], "--srgb-weight must be a number >= 0"),
     (["--methods", "spikelik", "--srgb-weight", "nan"], "--srgb-weight must be a number >= 0")])
@@ -659,6 +658,49 @@ def test_runs_with_another_ray_order_are_other_runs(tmp_path, monkeypatch):
     line = next(x for x in make_protocol.targets(rows + [port, {**port, "method": "spikenerf-paper --ray-order shuffled",
                                                                  "metrics": {"psnr_object": 21.0}}]) if label in x)
     assert "| +4.20 (met; 1 of 3 seeds) |" in line  # 25.2 - 21.0, not 25.2 - 24.0
+
+
+def test_the_plan_drawn_shuffled_is_made_and_counted_apart(tmp_path, monkeypatch):
+    """``--plan --ray-order shuffled`` makes the plan's runs (no others) in that order, each once; make_protocol counts
+    them apart from the default's plan: a uniform run fills no shuffled slot and a shuffled one no uniform slot,
+    and a shuffled run with another option off its default (``--srgb-weight 0``) fills neither."""
+    import bench_protocol
+
+    results, made = tmp_path / "rows.jsonl", []
+
+    def run_one(folder, cell, args):
+        made.append(cell)
+        return {**cell, "train_seconds": 1.0, "metrics": {"psnr": 30.0, "psnr_object": 25.0}}
+
+    monkeypatch.setattr(bench_protocol, "run_one", run_one)
+    monkeypatch.setattr(bench_protocol, "dataset", lambda data, sensor, i, args: tmp_path / f"{data}_i{i}")
+    argv = ["bench_protocol.py", "--resolution", "100", "--data", "chair", "--sensors", "rsir,ideal", "--intensities",
+            "32,64", "--methods", "spikelik,tfp32,oracle", "--seeds", "0,1", "--plan", "--ray-order", "shuffled",
+            "--results", str(results), "--out", str(tmp_path)]
+    monkeypatch.setattr(sys, "argv", argv)
+    bench_protocol.main()
+    assert sorted((c["method"], c["seed"]) for c in made) == [("spikelik", 0), ("spikelik", 1), ("tfp32", 0),
+                                                               ("tfp32", 1)]  # the plan's: rsir, i64, no oracle
+    assert {(c["sensor"], c["intensity"], c["ray_order"]) for c in made} == {("rsir", 64, "shuffled")}
+    bench_protocol.main()  # all made: nothing more
+    assert len(made) == 4 and len(results.read_text().splitlines()) == 4
+
+    rows = make_protocol.load(results)
+    assert {r["method"] for r in rows} == {"spikelik --ray-order shuffled", "tfp32 --ray-order shuffled"}
+
+    def left(rs, order):
+        gaps = [g for g in make_protocol.plan_gaps(rs, order) if g[:3] == (100, "chair", "rsir")]
+        return len(gaps[0][6])
+
+    assert left([], "shuffled") == left([], "uniform") == left(rows, "uniform") == 21
+    assert left(rows, "shuffled") == 17
+    uniform = [{**r, "method": r["method"].split(" ")[0]} for r in rows]  # the same runs drawn uniformly
+    assert left(uniform, "shuffled") == 21 and left(uniform, "uniform") == 17
+    weight_off = [{**r, "method": "spikelik --srgb-weight 0 --ray-order shuffled"} for r in rows
+                  if r["method"].startswith("spikelik")]
+    assert left(weight_off, "shuffled") == left(weight_off, "uniform") == 21
+    assert sum(len(g[5]) for g in make_protocol.plan_gaps([])) == 537  # the whole plan, in either order
+    assert "Made so far: 4 of the plan's 537 runs" in make_protocol.shuffled_plan_note(rows)
 
 
 def test_options_section_pairs_each_run_with_the_default_run_of_its_seed():
