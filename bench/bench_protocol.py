@@ -30,8 +30,8 @@ linear Eqs. S2-S6 for the integrate-and-fire sensors, the rsir fit for ``rsir``;
 ``calibration_fit``, and rows without it were made with Eqs. S2-S6). ``--plan`` keeps, of the runs asked
 for, those of the protocol's plan (bench/make_protocol.py ``PLAN``: what its "Still missing" counts), its
 calibrated-maps runs included; with ``--ray-order shuffled``, the plan drawn in that order (what its "The plan
-drawn in the shuffled order" counts: the runs the default's change waits for). No setting is chosen here: every method runs
-with the trainer's defaults, except where a call names one (``--iters``, ``--frames``, ``--batch-rays``,
+drawn in the shuffled order" counts: the runs the default's change waits for). No setting is chosen here: every
+method runs with the trainer's defaults, except where a call names one (``--iters``, ``--frames``, ``--batch-rays``,
 ``--srgb-weight``, ``--ray-order``), which its rows state and the tables show in their own rows. ``oracle`` (not a
 spike method; it knows the ground-truth images of the train views) is the same field fitted to those images: what
 the field can represent.

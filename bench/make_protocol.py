@@ -320,8 +320,8 @@ def shuffled_plan_note(rows: list) -> str:
             "`--ray-order shuffled` becomes the default only once the whole plan has been made in that order too, "
             "so that the tables then compare the new default's runs and nothing else (what it changed in each run "
             "made so far: \"Trainer options off their defaults\" above). "
-            "`python bench/bench_protocol.py --plan --ray-order shuffled` (with the cell's --resolution, --data, "
-            f"--sensors) makes them. Made so far: {made} of the plan's {wanted} runs; not yet made:")
+            "`python bench/bench_protocol.py --resolution R --data D --plan --ray-order shuffled` makes those of a "
+            f"size and data. Made so far: {made} of the plan's {wanted} runs; not yet made:")
 
 
 def _which(gone: list, methods) -> str:
