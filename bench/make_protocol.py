@@ -8,6 +8,7 @@ import itertools
 import json
 from collections import Counter, defaultdict
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -142,9 +143,13 @@ def _method(r: dict) -> str:
     the trainer's default (bench_protocol.ray_order: rows without the key drew them uniformly)."""
     w = srgb_weight(r)
     default = default_weight(r["method"], r["intensity"], r.get("frames") or 0, r.get("windows") or 1)
-    order = ray_order(r)
-    return (r["method"] + ("" if w == default else f" --srgb-weight {w:g}")
-            + ("" if order == TrainConfig.ray_order else f" --ray-order {order}"))
+    return r["method"] + ("" if w == default else f" --srgb-weight {w:g}") + _order_option(ray_order(r))
+
+
+def _order_option(order: str) -> str:
+    """What a method's table label adds for rays drawn in ``order`` (:func:`_method`): `` --ray-order O``, nothing
+    for the trainer's default order."""
+    return "" if order == TrainConfig.ray_order else f" --ray-order {order}"
 
 
 def _knowledge(r: dict) -> str:
@@ -276,13 +281,24 @@ def _loads(rows) -> str:
     return f"{min(la):.2f} to {max(la):.2f}"
 
 
-def plan_gaps(rows: list, order: str = TrainConfig.ray_order) -> list[tuple]:
+class PlanCell(NamedTuple):
+    """One cell of the plan (a size, data and sensor) and its runs: those wanted, as (intensity, (method,
+    knowledge), seed), and those of them not made."""
+    res: int
+    data: str
+    sensor: str
+    intensities: tuple
+    methods: list
+    want: list
+    gone: list
+
+
+def plan_gaps(rows: list, order: str = TrainConfig.ray_order) -> list[PlanCell]:
     """The planned runs (PLAN, at the trainer's default iteration count for the resolution) not in the results,
-    per cell of the plan: ``(resolution, data, sensor name, intensities, (method, knowledge) pairs, the runs
-    wanted [(intensity, pair, seed)], those not made)``. ``order``: the plan drawn in that ray order
-    (``bench_protocol.py --plan --ray-order O``): a run fills its slot when its table label is the method's with
-    ``--ray-order O`` alone (:func:`_method`: every other option at its default)."""
-    suffix = "" if order == TrainConfig.ray_order else f" --ray-order {order}"
+    per cell of the plan. ``order``: the plan drawn in that ray order (``bench_protocol.py --plan --ray-order O``):
+    a run fills its slot when its table label is the method's with ``--ray-order O`` alone (:func:`_method`: every
+    other option at its default)."""
+    suffix = _order_option(order)
     have = {(r["resolution"], r["data"], r["sensor"], r["intensity"], (r["method"], r["knowledge"]), r["seed"])
             for r in rows
             if r["iterations"] == default_iters(r["resolution"], r["resolution"]) and not r["frames"]
@@ -293,7 +309,7 @@ def plan_gaps(rows: list, order: str = TrainConfig.ray_order) -> list[tuple]:
             sensor = sensor_name({"sensor": preset, "sensor_model": sensor_model(preset)})  # the preset as it is now
             want = list(itertools.product(intensities, methods, SEEDS))
             gone = [w for w in want if (res, data, sensor, w[0], (w[1][0] + suffix, w[1][1]), w[2]) not in have]
-            out.append((res, data, sensor, intensities, methods, want, gone))
+            out.append(PlanCell(res, data, sensor, intensities, methods, want, gone))
     return out
 
 
@@ -315,7 +331,7 @@ def shuffled_plan_note(rows: list) -> str:
     """What the section on the plan drawn in the shuffled order says before its list: why it is there and how
     much of it is made."""
     gaps = plan_gaps(rows, "shuffled")
-    wanted, made = sum(len(g[5]) for g in gaps), sum(len(g[5]) - len(g[6]) for g in gaps)
+    wanted, made = sum(len(g.want) for g in gaps), sum(len(g.want) - len(g.gone) for g in gaps)
     return ("The trainer draws rays uniformly by default, and every planned run above was drawn so. "
             "`--ray-order shuffled` becomes the default only once the whole plan has been made in that order too, "
             "so that the tables then compare the new default's runs and nothing else (what it changed in each run "
