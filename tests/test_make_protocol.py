@@ -703,6 +703,33 @@ def test_the_plan_drawn_shuffled_is_made_and_counted_apart(tmp_path, monkeypatch
     assert "Made so far: 4 of the plan's 537 runs" in make_protocol.shuffled_plan_note(rows)
 
 
+def test_order_summary_sets_each_planned_run_against_its_uniform_twin():
+    """The summary of the plan drawn in both orders: per method, shuffled minus uniform seed for seed over the
+    plan's cells, the cells gaining on every seed counted and those losing on every seed named; a seed made in one
+    order only, a run at another budget and a method outside the plan (the oracle) are left out."""
+    def row(method, seed, obj, intensity=64, iterations=9000, knowledge="true maps"):
+        return _row(method, knowledge, obj, seed=seed, intensity=intensity, iterations=iterations)
+
+    shuffled = " --ray-order shuffled"
+    rows = [row("spikelik", s, 25.0 + 0.1 * s) for s in range(3)]
+    rows += [row("spikelik" + shuffled, s, 25.2 + 0.1 * s) for s in range(3)]        # +0.2 on every seed
+    rows += [row("spikelik", s, 20.0, intensity=16) for s in range(3)]
+    rows += [row("spikelik" + shuffled, s, 19.9, intensity=16) for s in range(2)]     # -0.1 on both seeds made
+    rows += [row("tfp32", s, 20.0, knowledge="none") for s in range(2)]
+    rows += [row("tfp32" + shuffled, 0, 20.5, knowledge="none"), row("tfp32" + shuffled, 1, 19.5, knowledge="none")]
+    rows += [row("spikelik", 0, 10.0, iterations=3000), row("spikelik" + shuffled, 0, 30.0, iterations=3000)]
+    rows += [row("oracle", 0, 26.0, knowledge="ground-truth images"),
+             row("oracle" + shuffled, 0, 27.0, knowledge="ground-truth images")]
+    table = make_protocol.order_summary(rows)
+    cells = {c[0]: c for c in ([x.strip() for x in line.split("|")[1:-1]] for line in table[2:])}
+    assert set(cells) == {"spikelik", "tfp32"}
+    diffs = np.array([0.2] * 3 + [-0.1] * 2)
+    assert cells["spikelik"][1:] == ["true maps", "2 / 0", "5", f"{diffs.mean():+.2f} ± {diffs.std(ddof=1):.2f}",
+                                     "1 of 2", "1: lego rsir 400 i16"]
+    assert cells["tfp32"][1:] == ["none", "1 / 0", "2", "+0.00 ± 0.71", "0 of 1", "0"]
+    assert make_protocol.order_summary([r for r in rows if shuffled not in r["method"]]) == []
+
+
 def test_options_section_pairs_each_run_with_the_default_run_of_its_seed():
     """A run with a trainer option is set against the same method's default run of its seed (same data,
     knowledge, budget, intensity): mean and SD of the per-seed differences; a seed with no default twin, or a
