@@ -344,13 +344,13 @@ def order_summary(rows: list, order: str = "shuffled", against: str = "uniform")
     for m, k in sorted(pairs, key=lambda mk: (_order(mk[0]), mk[1])):
         cells = pairs[m, k]
         diffs = [d for ds in cells.values() for d in ds]
-        lose = [f"{data} {sensor} {res} i{i}" for (res, data, sensor, i), ds in cells.items() if max(ds) < 0]
+        lose = [f"{data}, {sensor}, {res} x {res}, i{i}" for (res, data, sensor, i), ds in cells.items() if max(ds) < 0]
         sizes = f"{sum(c[0] == 400 for c in cells)} / {sum(c[0] == 100 for c in cells)}"
         v = np.array(diffs)
         spread = f" ± {v.std(ddof=1):.2f}" if v.size > 1 else ""
         out.append(f"| {m} | {k} | {sizes} | {v.size} | {v.mean():+.2f}{spread} | "
                    f"{sum(min(ds) > 0 for ds in cells.values())} of {len(cells)} | "
-                   f"{len(lose)}{': ' + ', '.join(lose) if lose else ''} |")
+                   f"{len(lose)}{': ' + '; '.join(lose) if lose else ''} |")
     return out
 
 

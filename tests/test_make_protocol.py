@@ -725,7 +725,7 @@ def test_order_summary_sets_each_planned_run_against_its_uniform_twin():
     assert set(cells) == {"spikelik", "tfp32"}
     diffs = np.array([0.2] * 3 + [-0.1] * 2)
     assert cells["spikelik"][1:] == ["true maps", "2 / 0", "5", f"{diffs.mean():+.2f} ± {diffs.std(ddof=1):.2f}",
-                                     "1 of 2", "1: lego rsir 400 i16"]
+                                     "1 of 2", "1: lego, rsir, 400 x 400, i16"]
     assert cells["tfp32"][1:] == ["none", "1 / 0", "2", "+0.00 ± 0.71", "0 of 1", "0"]
     assert make_protocol.order_summary([r for r in rows if shuffled not in r["method"]]) == []
 

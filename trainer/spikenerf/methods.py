@@ -17,7 +17,7 @@
   frames, TFI), turned into radiance as ``X = rate * 256 / I`` (no calibration, as the
   paper's baselines), fitted with MSE.
 - ``spikelik`` (the default): the likelihood of the spike counts in time windows (at most 8;
-  by default as few as keep the image's motion within a window under a pixel,
+  by default as few as keep the image's motion within a window to at most 2.5 pixels,
   :func:`spikenerf.targets.count_windows`), each rendered from the camera pose at its own time
   (interpolated from the recorded sub-frame poses), so camera motion during the stream is
   modelled, not blurred; on an integrate-and-fire sensor with subtractive reset (the ``if`` kind)
