@@ -230,6 +230,12 @@ def _stat(values, digits: int = 2) -> str:
     return f"{v.mean():.{digits}f}{sd} ({v.size})"
 
 
+def _signed_stat(differences, digits: int) -> str:
+    """Differences as the tables give them: the signed mean, ± the SD where there are two or more."""
+    v = np.array(differences, float)
+    return f"{v.mean():+.{digits}f}" + (f" ± {v.std(ddof=1):.{digits}f}" if v.size > 1 else "")
+
+
 def table(rows: list, key: str, label: str) -> list[str]:
     """Markdown rows: one per (method, knowledge, iterations, frames), one column per intensity."""
     groups = defaultdict(list)
@@ -329,12 +335,12 @@ def order_summary(rows: list, order: str = "shuffled", against: str = "uniform")
     """The plan's runs made in both ray orders, per method and knowledge: ``order`` minus ``against`` in object
     PSNR, seed for seed, over every cell of the plan (size, data, sensor, intensity) with both; how many of those
     cells gain on every seed, and which lose on every seed. What the change of the default order rests on."""
-    runs = _plan_runs(rows)
+    runs, mine, theirs = _plan_runs(rows), _order_option(order), _order_option(against)
     pairs = defaultdict(lambda: defaultdict(list))  # (method, knowledge) -> cell -> per-seed differences
     for res, data, sensor, intensities, methods in _plan_cells():
         for i, (m, k), s in itertools.product(intensities, methods, SEEDS):
-            a = runs.get((res, data, sensor, i, (m + _order_option(order), k), s))
-            b = runs.get((res, data, sensor, i, (m + _order_option(against), k), s))
+            a = runs.get((res, data, sensor, i, (m + mine, k), s))
+            b = runs.get((res, data, sensor, i, (m + theirs, k), s))
             if a is not None and b is not None:
                 pairs[m, k][res, data, sensor, i].append(a["metrics"]["psnr_object"] - b["metrics"]["psnr_object"])
     if not pairs:
@@ -346,9 +352,7 @@ def order_summary(rows: list, order: str = "shuffled", against: str = "uniform")
         diffs = [d for ds in cells.values() for d in ds]
         lose = [f"{data}, {sensor}, {res} x {res}, i{i}" for (res, data, sensor, i), ds in cells.items() if max(ds) < 0]
         sizes = f"{sum(c[0] == 400 for c in cells)} / {sum(c[0] == 100 for c in cells)}"
-        v = np.array(diffs)
-        spread = f" ± {v.std(ddof=1):.2f}" if v.size > 1 else ""
-        out.append(f"| {m} | {k} | {sizes} | {v.size} | {v.mean():+.2f}{spread} | "
+        out.append(f"| {m} | {k} | {sizes} | {len(diffs)} | {_signed_stat(diffs, 2)} | "
                    f"{sum(min(ds) > 0 for ds in cells.values())} of {len(cells)} | "
                    f"{len(lose)}{': ' + '; '.join(lose) if lose else ''} |")
     return out
@@ -658,9 +662,8 @@ def options_section(rows: list) -> list[str]:
         ps = pairs[key]
 
         def diff(metric, digits):
-            v = np.array([a["metrics"][metric] - b["metrics"][metric] for a, b in ps], float)
-            sd = f" ± {v.std(ddof=1):.{digits}f}" if v.size > 1 else ""
-            return f"{v.mean():+.{digits}f}{sd} ({v.size})"
+            v = [a["metrics"][metric] - b["metrics"][metric] for a, b in ps]
+            return f"{_signed_stat(v, digits)} ({len(v)})"
         frames_text = "" if not frames else f", first {frames} frames"
         out.append(f"| {data}, {sensor}, {res} x {res}{frames_text} | {_iters(budget)} | {method} | {knows} | i{i} | "
                    f"{diff('psnr_object', 2)} | {diff('psnr', 2)} | {diff('ssim_object', 3)} |")
